@@ -1,0 +1,25 @@
+"""geocoder: tile-parallel sub-pixel registration and geocoding of scanner imagery on Dask."""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from .errors import GeocoderError, InputError, MatchingError
+from .pipeline.register import RegisterOptions, register
+from .scene import ingest, open_scene
+from .status import Status
+
+try:
+    __version__ = version("geocoder")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0.0.0"
+
+__all__ = [
+    "GeocoderError",
+    "InputError",
+    "MatchingError",
+    "RegisterOptions",
+    "Status",
+    "__version__",
+    "ingest",
+    "open_scene",
+    "register",
+]

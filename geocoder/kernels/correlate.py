@@ -1,0 +1,174 @@
+"""Patch correlation and least-squares refinement of point pairs.
+
+Patches are sampled through a local affine so that rotation and scale between the images
+do not defeat the correlation (DESIGN.md, data flow step 4): the distorted patch of a point
+pair is the distorted image at ``p'' + J @ (u, v)`` for the template offsets ``(u, v)``.
+
+References
+----------
+Paderes, Mikhail & Foerstner (1984), eqs 23-29 and 34 (weights and correlation);
+Foerstner (1982) / Gruen (1985) for least-squares matching.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .resample import sample
+
+
+def patch_offsets(radius: int) -> np.ndarray:
+    """Offsets ``(u, v)`` of a square ``(2 radius + 1)^2`` template, shape (P, 2), row-major."""
+    r = np.arange(-radius, radius + 1, dtype=np.float64)
+    v, u = np.meshgrid(r, r, indexing="ij")
+    return np.stack([u.ravel(), v.ravel()], axis=1)
+
+
+def extract_patches(image: np.ndarray, x: np.ndarray, y: np.ndarray, radius: int) -> np.ndarray:
+    """Patches around integral positions, shape (n, P); rows with any pixel outside are NaN."""
+    offs = patch_offsets(radius).astype(np.int64)
+    xi = np.rint(np.asarray(x)).astype(np.int64)[:, None] + offs[None, :, 0]
+    yi = np.rint(np.asarray(y)).astype(np.int64)[:, None] + offs[None, :, 1]
+    h, w = image.shape
+    inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+    out = image[np.clip(yi, 0, h - 1), np.clip(xi, 0, w - 1)].astype(np.float64)
+    out[~inside.all(axis=1)] = np.nan
+    return out
+
+
+def warped_patches(
+    image: np.ndarray, x: np.ndarray, y: np.ndarray, jac: np.ndarray, radius: int
+) -> np.ndarray:
+    """Bilinear patches at ``(x, y) + jac @ (u, v)``, shape (n, P); NaN where undefined.
+
+    ``jac`` has shape (n, 2, 2), rows ``d(x'', y'') / d(x, y)``.
+    """
+    offs = patch_offsets(radius)
+    px = np.asarray(x)[:, None] + jac[:, 0, 0, None] * offs[:, 0] + jac[:, 0, 1, None] * offs[:, 1]
+    py = np.asarray(y)[:, None] + jac[:, 1, 0, None] * offs[:, 0] + jac[:, 1, 1, None] * offs[:, 1]
+    return sample(np.asarray(image, dtype=np.float32), px, py, method="bilinear").astype(np.float64)
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Correlation coefficient of matching rows of ``a`` and ``b`` (eq 34); NaN rows give NaN."""
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    num = (a * b).sum(axis=1)
+    den = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / den, np.nan)
+
+
+def pair_weight(rho: np.ndarray, sd1: np.ndarray, sd2: np.ndarray, w1: np.ndarray, w2: np.ndarray) -> np.ndarray:
+    """A-priori weight of a point pair (eq 29).
+
+    ``w = rho / (2 (1 - rho)) / (sigma_g' sigma_g'' sqrt(tr Q' tr Q''))`` with
+    ``tr Q = 1 / w_interest`` (eq 32-33).
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        snr2 = rho / (2.0 * (1.0 - rho))
+        return np.where(rho < 1.0, snr2 * np.sqrt(w1 * w2) / (sd1 * sd2), np.inf)
+
+
+@dataclass(frozen=True)
+class ShiftMatch:
+    """Least-squares refined positions of point pairs (all arrays of shape (n,)).
+
+    ``x, y`` are the refined positions in the searched image; ``sigma_x, sigma_y`` their
+    standard deviations from the normal matrix and sigma_0; ``rho`` the final correlation;
+    ``ok`` whether the iteration converged within ``max_move`` of the start.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    sigma_x: np.ndarray
+    sigma_y: np.ndarray
+    rho: np.ndarray
+    ok: np.ndarray
+
+
+def refine_shift(
+    template: np.ndarray,
+    image: np.ndarray,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    jac: np.ndarray,
+    radius: int,
+    *,
+    iterations: int = 12,
+    tol: float = 0.005,
+    max_move: float = 2.0,
+) -> ShiftMatch:
+    """Least-squares matching of templates with shift and gain/offset, geometry ``jac`` fixed.
+
+    Minimises ``sum (T(u) - a I(p + J u) - b)^2`` over the shift ``p`` and the radiometric
+    ``a, b`` by Gauss-Newton, all points at once (no Python loop over points).
+
+    Parameters
+    ----------
+    template : ndarray, shape (n, P)
+        Base patches (see :func:`extract_patches`).
+    image : ndarray, shape (H, W)
+        The image searched (NaN = nodata).
+    x0, y0 : ndarray, shape (n,)
+        Start positions in ``image``.
+    jac : ndarray, shape (n, 2, 2)
+        Local affine of the template frame into the image frame.
+    radius : int
+        Template radius (``P = (2 radius + 1)^2``).
+    """
+    img = np.asarray(image, dtype=np.float32)
+    gy, gx = np.gradient(img)
+    stack = np.stack([img, gx.astype(np.float32), gy.astype(np.float32)])
+    offs = patch_offsets(radius)
+    du = jac[:, 0, 0, None] * offs[:, 0] + jac[:, 0, 1, None] * offs[:, 1]
+    dv = jac[:, 1, 0, None] * offs[:, 0] + jac[:, 1, 1, None] * offs[:, 1]
+    x = np.asarray(x0, dtype=np.float64).copy()
+    y = np.asarray(y0, dtype=np.float64).copy()
+    n, p = template.shape
+    t = template
+    converged = np.zeros(n, dtype=bool)
+    nmat = np.zeros((n, 4, 4))
+    res = np.full((n, p), np.nan)
+    for _ in range(iterations):
+        vals = sample(stack, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
+        g, ix, iy = vals
+        # radiometry first (closed form), then the shift step with it
+        gm, tm = g.mean(1, keepdims=True), t.mean(1, keepdims=True)
+        var = ((g - gm) ** 2).sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = np.where(var > 0, ((g - gm) * (t - tm)).sum(1) / var, np.nan)
+        b = tm[:, 0] - a * gm[:, 0]
+        res = t - (a[:, None] * g + b[:, None])
+        design = np.stack([a[:, None] * ix, a[:, None] * iy, g, np.ones_like(g)], axis=2)
+        nmat = np.einsum("npi,npj->nij", design, design)
+        rhs = np.einsum("npi,np->ni", design, res)
+        bad = ~np.isfinite(nmat).all(axis=(1, 2)) | ~np.isfinite(rhs).all(axis=1)
+        nmat[bad] = np.eye(4)
+        rhs[bad] = 0.0
+        step = np.linalg.solve(nmat + 1e-9 * np.eye(4), rhs[..., None])[..., 0]
+        step[bad] = np.nan
+        active = ~converged
+        x[active] += step[active, 0]
+        y[active] += step[active, 1]
+        converged |= np.hypot(step[:, 0], step[:, 1]) < tol
+        if converged.all():
+            break
+    vals = sample(img, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
+    rho = correlation(t, vals)
+    dof = max(p - 4, 1)
+    sigma2 = np.nansum(res**2, axis=1) / dof
+    with np.errstate(invalid="ignore"):
+        cov = np.linalg.pinv(nmat) * sigma2[:, None, None]
+    moved = np.hypot(x - x0, y - y0)
+    ok = converged & np.isfinite(rho) & (moved <= max_move) & np.isfinite(x) & np.isfinite(y)
+    return ShiftMatch(
+        x=x,
+        y=y,
+        sigma_x=np.sqrt(np.abs(cov[:, 0, 0])),
+        sigma_y=np.sqrt(np.abs(cov[:, 1, 1])),
+        rho=rho,
+        ok=ok,
+    )

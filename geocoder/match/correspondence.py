@@ -1,0 +1,162 @@
+"""Correspondence of interest points within one tile (seed 000 sec. 4.3-4.4).
+
+Pure function of in-memory windows: candidate pairs within ``d_max`` of the prediction,
+correlation of the base patch with the distorted patch sampled through the prediction's
+local affine, pair weights (eq 29), robust shift then robust affine (eq 20b, then 22b),
+ambiguities resolved by the smaller residual, and a least-squares refinement of the
+distorted position of every surviving pair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..kernels.correlate import correlation, extract_patches, pair_weight, refine_shift, warped_patches
+from ..kernels.interest import InterestPoints
+from ..kernels.polynomial import PolyMap, design
+from ..kernels.robust import robust_fit
+from .tiepoints import TiePoints
+
+
+@dataclass(frozen=True)
+class CorrespondenceOptions:
+    """Options of the correspondence step.
+
+    d_max : largest distance (distorted pixels) between a candidate and its prediction.
+    rho_min : smallest correlation coefficient of a candidate pair (seed: 0.5).
+    patch : radius of the correlation patch (patch of ``2 patch + 1`` pixels square).
+    refine : radius of the least-squares refinement template.
+    min_pairs : fewest pairs a tile needs for its robust affine.
+    rho_final : smallest correlation after refinement.
+    max_move : largest move (px) of the refinement away from the robust prediction.
+    """
+
+    d_max: float = 24.0
+    rho_min: float = 0.5
+    patch: int = 7
+    refine: int = 8
+    min_pairs: int = 6
+    rho_final: float = 0.6
+    max_move: float = 2.0
+
+    @property
+    def margin(self) -> int:
+        return max(self.patch, self.refine) + 3
+
+
+@dataclass(frozen=True)
+class TileMatchStats:
+    base_points: int = 0
+    candidates: int = 0
+    correlated: int = 0
+    robust: int = 0
+    refined: int = 0
+    reason: str = ""
+
+
+def _unique_best(keys: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Mask keeping, for every key, only the entry of smallest score."""
+    order = np.lexsort((score, keys))
+    first = np.r_[True, keys[order][1:] != keys[order][:-1]]
+    keep = np.zeros(keys.size, dtype=bool)
+    keep[order[first]] = True
+    return keep
+
+
+def correspond(
+    base: np.ndarray,
+    base_origin: tuple[int, int],
+    base_points: InterestPoints,
+    dist: np.ndarray,
+    dist_origin: tuple[int, int],
+    dist_points: InterestPoints,
+    predict: PolyMap,
+    opts: CorrespondenceOptions = CorrespondenceOptions(),
+) -> tuple[TiePoints, TileMatchStats]:
+    """Find and refine point pairs for the base points of one tile.
+
+    Parameters
+    ----------
+    base, dist : ndarray, shape (h, w)
+        Windows of the base and distorted image (NaN = nodata); ``*_origin`` is the global
+        (row, col) of their first pixel.
+    base_points, dist_points : InterestPoints
+        Interest points (global coordinates) of the tile and of the distorted window.
+    predict : PolyMap
+        Current prediction, base pixel -> distorted pixel (global frames).
+
+    Returns
+    -------
+    TiePoints, TileMatchStats
+    """
+    stats = {"base_points": len(base_points)}
+    empty = TiePoints.empty()
+    if len(base_points) < opts.min_pairs or len(dist_points) == 0:
+        return empty, TileMatchStats(**stats, reason="too few interest points")
+    br0, bc0 = base_origin
+    dr0, dc0 = dist_origin
+    tmpl = extract_patches(base, base_points.x - bc0, base_points.y - br0, opts.patch)
+    px, py = predict(base_points.x, base_points.y)
+    jac = predict.jacobian(base_points.x, base_points.y)
+    tree = cKDTree(np.stack([dist_points.x, dist_points.y], axis=1))
+    lists = tree.query_ball_point(np.stack([px, py], axis=1), r=opts.d_max)
+    counts = np.fromiter((len(c) for c in lists), dtype=np.int64, count=len(lists))
+    ii = np.repeat(np.arange(len(lists)), counts)
+    jj = np.fromiter((j for c in lists for j in c), dtype=np.int64, count=int(counts.sum()))
+    ok = np.isfinite(tmpl[ii]).all(axis=1)
+    ii, jj = ii[ok], jj[ok]
+    stats["candidates"] = int(ii.size)
+    if ii.size < opts.min_pairs:
+        return empty, TileMatchStats(**stats, reason="too few candidate pairs")
+    patches = warped_patches(dist, dist_points.x[jj] - dc0, dist_points.y[jj] - dr0, jac[ii], opts.patch)
+    rho = correlation(tmpl[ii], patches)
+    keep = rho > opts.rho_min
+    ii, jj, rho, patches = ii[keep], jj[keep], rho[keep], patches[keep]
+    stats["correlated"] = int(ii.size)
+    if ii.size < opts.min_pairs:
+        return empty, TileMatchStats(**stats, reason="too few correlated pairs")
+    weight = pair_weight(rho, tmpl[ii].std(axis=1), patches.std(axis=1), base_points.w[ii], dist_points.w[jj])
+    weight = np.where(np.isfinite(weight), weight, np.nanmax(np.where(np.isfinite(weight), weight, 0)))
+    obs = np.stack([dist_points.x[jj] - px[ii], dist_points.y[jj] - py[ii]], axis=1)
+    shift = robust_fit(np.ones((ii.size, 1)), obs, weight, min_points=opts.min_pairs)
+    if shift.reason == "too_few":
+        return empty, TileMatchStats(**stats, reason="robust shift failed")
+    cx, cy = base_points.x.mean(), base_points.y.mean()
+    scale = max(np.ptp(base_points.x), np.ptp(base_points.y), 1.0) / 2
+    u, v = (base_points.x[ii] - cx) / scale, (base_points.y[ii] - cy) / scale
+    basis = design(u, v, 1)
+    start = np.vstack([shift.coef, np.zeros((2, 2))])
+    affine = robust_fit(basis, obs, weight, min_points=opts.min_pairs, start=start)
+    if affine.reason == "too_few":
+        return empty, TileMatchStats(**stats, reason="robust affine failed")
+    good = affine.inliers
+    resid = np.hypot(*affine.residuals.T)
+    good &= _unique_best(np.where(good, ii, -1 - np.arange(ii.size)), resid)
+    good &= _unique_best(np.where(good, jj, -1 - np.arange(jj.size)), resid)
+    ii, jj = ii[good], jj[good]
+    stats["robust"] = int(ii.size)
+    if ii.size == 0:
+        return empty, TileMatchStats(**stats, reason="no pair survived")
+    # start the refinement from the tile's affine; its linear part refines the local geometry
+    corr = design((base_points.x[ii] - cx) / scale, (base_points.y[ii] - cy) / scale, 1) @ affine.coef
+    lin = affine.coef[1:].T / scale  # d(correction)/d(x, y)
+    jfull = jac[ii] + lin[None]
+    x0, y0 = px[ii] + corr[:, 0], py[ii] + corr[:, 1]
+    big = extract_patches(base, base_points.x[ii] - bc0, base_points.y[ii] - br0, opts.refine)
+    fine = refine_shift(big, dist, x0 - dc0, y0 - dr0, jfull, opts.refine, max_move=opts.max_move)
+    acc = fine.ok & (fine.rho > opts.rho_final) & np.isfinite(big).all(axis=1)
+    stats["refined"] = int(acc.sum())
+    tp = TiePoints.build(
+        base_x=base_points.x[ii][acc],
+        base_y=base_points.y[ii][acc],
+        dist_x=fine.x[acc] + dc0,
+        dist_y=fine.y[acc] + dr0,
+        weight=weight[good][acc],
+        rho=fine.rho[acc],
+        sigma_x=fine.sigma_x[acc],
+        sigma_y=fine.sigma_y[acc],
+    )
+    return tp, TileMatchStats(**stats, reason="ok")

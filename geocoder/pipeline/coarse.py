@@ -1,0 +1,69 @@
+"""Coarse alignment of two scenes: overviews by dask, prior from the georeference."""
+
+from __future__ import annotations
+
+import math
+
+import dask
+import numpy as np
+import xarray as xr
+from rasterio.warp import transform as reproject_points
+
+from ..match.coarse import CoarseAlignment, align_overviews
+from ..scene import pixel_to_world, scene_transform, world_to_pixel
+
+
+def overview(image: xr.DataArray, factor: int) -> xr.DataArray:
+    """Lazy block mean (NaN-aware) of a 2-D ``(y, x)`` image over ``factor`` squares."""
+    if factor <= 1:
+        return image
+    return image.coarsen(y=factor, x=factor, boundary="trim").mean()  # NaN-aware by default for floats
+
+
+def georeference_prior(base: xr.DataArray, dist: xr.DataArray) -> np.ndarray | None:
+    """Affine base pixel -> distorted pixel implied by both georeferences (or None).
+
+    With different CRSs a 5 x 5 grid of base pixels is reprojected and an affine fitted.
+    """
+    tb, td = scene_transform(base), scene_transform(dist)
+    if tb is None or td is None:
+        return None
+    h, w = base.sizes["y"], base.sizes["x"]
+    gx, gy = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
+    wx, wy = pixel_to_world(tb, gx.ravel(), gy.ravel())
+    if base.rio.crs != dist.rio.crs:
+        wx, wy = (np.asarray(v) for v in reproject_points(base.rio.crs, dist.rio.crs, wx, wy))
+    dx, dy = world_to_pixel(td, wx, wy)
+    design = np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], axis=1)
+    coef = np.linalg.lstsq(design, np.stack([dx, dy], axis=1), rcond=None)[0]
+    return coef.T
+
+
+def coarse_alignment(
+    base: xr.DataArray,
+    dist: xr.DataArray,
+    *,
+    band: int = 0,
+    dist_band: int | None = None,
+    max_size: int = 512,
+    use_georeference: bool = True,
+) -> CoarseAlignment:
+    """Coarse affine base pixel -> distorted pixel, found automatically.
+
+    Parameters
+    ----------
+    base, dist : xarray.DataArray
+        Scenes from :func:`geocoder.open_scene`.
+    band, dist_band : int
+        0-based band used for matching in each scene.
+    max_size : int
+        Largest side of the overviews the alignment runs on.
+    use_georeference : bool
+        Use the georeference as the prior when both scenes have one.
+    """
+    dist_band = band if dist_band is None else dist_band
+    largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
+    factor = max(1, math.ceil(largest / max_size))
+    ob, od = dask.compute(overview(base.isel(band=band), factor), overview(dist.isel(band=dist_band), factor))
+    prior = georeference_prior(base, dist) if use_georeference else None
+    return align_overviews(np.asarray(ob, dtype=np.float64), np.asarray(od, dtype=np.float64), factor, prior=prior)

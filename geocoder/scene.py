@@ -1,0 +1,241 @@
+"""Scenes: open GeoTIFF/COG/Zarr as dask-backed ``(band, y, x)`` DataArrays, ingest to Zarr.
+
+A scene is a float32 :class:`xarray.DataArray` with dims ``(band, y, x)``; nodata is NaN
+(the mask), the CRS and affine transform ride along through rioxarray, and
+``attrs["source"]`` names the file it came from. Pixel/world conversion lives here, with the
+half-pixel offset explicit in one place.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+import warnings
+from pathlib import Path
+
+import numpy as np
+import rioxarray  # noqa: F401  (registers the .rio accessor)
+import xarray as xr
+import zarr
+from affine import Affine
+
+from .errors import InputError
+
+IMAGE_VAR = "image"
+
+
+def _is_zarr(path: str) -> bool:
+    p = path.rstrip("/")
+    return p.endswith(".zarr") or (os.path.isdir(p) and os.path.exists(os.path.join(p, "zarr.json")))
+
+
+def _chunks(tile: int | None) -> dict:
+    t = tile or 512
+    return {"band": -1, "y": t, "x": t}
+
+
+def open_scene(
+    path: str | os.PathLike,
+    *,
+    tile: int | None = 512,
+    nodata: float | None = None,
+    bands: list[int] | None = None,
+) -> xr.DataArray:
+    """Open a scene lazily as a float32 ``(band, y, x)`` DataArray with NaN as nodata.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        A GeoTIFF/COG (anything GDAL reads) or a Zarr store written by :func:`ingest`
+        (local path or fsspec URL).
+    tile : int, optional
+        Chunk size in y and x (the tile of the tile-parallel stages).
+    nodata : float, optional
+        Value to treat as nodata in addition to the file's declared nodata (some products,
+        e.g. converted JPEG2000, do not declare it).
+    bands : list of int, optional
+        1-based band numbers to keep; default all.
+
+    Returns
+    -------
+    xarray.DataArray
+        Dask-backed, dims ``(band, y, x)``, float32. ``attrs`` holds ``source`` (the path),
+        ``source_dtype`` and ``georeferenced`` (whether a CRS and transform were found).
+
+    Raises
+    ------
+    InputError
+        If the file is missing or cannot be read as a raster.
+    """
+    spath = os.fspath(path)
+    is_url = "://" in spath
+    if not is_url and not os.path.exists(spath):
+        raise InputError(spath, "no such file")
+    try:
+        if _is_zarr(spath):
+            ds = xr.open_zarr(spath, decode_coords="all", consolidated=False, chunks={})
+            if IMAGE_VAR not in ds:
+                raise InputError(spath, f"Zarr store has no '{IMAGE_VAR}' array (was it written by `geocoder ingest`?)")
+            da = ds[IMAGE_VAR]
+            if tile:
+                da = da.chunk(_chunks(tile))
+            source_dtype = da.attrs.get("source_dtype", str(da.dtype))
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # NotGeoreferencedWarning for raw frames
+                da = rioxarray.open_rasterio(spath, masked=True, chunks=_chunks(tile), lock=False, cache=False)
+            source_dtype = str(da.encoding.get("rasterio_dtype", da.encoding.get("dtype", da.dtype)))
+            if isinstance(da, list):
+                raise InputError(spath, "has several subdatasets; open one of them")
+    except InputError:
+        raise
+    except Exception as exc:  # rasterio/zarr raise many types; name the file and the cause
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(spath, f"cannot be read as a raster ({msg})") from None
+    if da.ndim != 3 or da.dims != ("band", "y", "x"):
+        raise InputError(spath, f"expected dims (band, y, x), found {da.dims}")
+    if bands is not None:
+        bad = [b for b in bands if not 1 <= b <= da.sizes["band"]]
+        if bad:
+            raise InputError(spath, f"has {da.sizes['band']} band(s); band(s) {bad} do not exist")
+        da = da.isel(band=[b - 1 for b in bands])
+    da = da.astype(np.float32)
+    if nodata is not None:
+        da = da.where(da != nodata)
+    crs = da.rio.crs
+    transform = da.rio.transform()
+    georef = crs is not None and not transform.is_identity and "spatial_ref" in da.coords
+    if crs is None:
+        # pixel index coordinates, as the conventions say (x = column, y = row)
+        da = da.assign_coords(x=np.arange(da.sizes["x"], dtype=np.float64), y=np.arange(da.sizes["y"], dtype=np.float64))
+    da = da.assign_coords(band=np.arange(1, da.sizes["band"] + 1))
+    da.attrs = {"source": spath, "source_dtype": source_dtype, "georeferenced": bool(georef)}
+    da.name = IMAGE_VAR
+    if georef:
+        da = da.rio.write_crs(crs).rio.write_transform(transform)
+    return da
+
+
+def scene_transform(scene: xr.DataArray) -> Affine | None:
+    """Affine transform (pixel corner convention, as GDAL) of a georeferenced scene."""
+    if not scene.attrs.get("georeferenced"):
+        return None
+    return scene.rio.transform()
+
+
+def pixel_to_world(transform: Affine, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World coordinates of pixel-centre coordinates ``(x=col, y=row)``.
+
+    GDAL transforms address pixel corners; the centre of pixel (r, c) is at (c + 0.5, r + 0.5)
+    in that frame. This function and :func:`world_to_pixel` are the only places that offset.
+    """
+    x = np.asarray(x, dtype=np.float64) + 0.5
+    y = np.asarray(y, dtype=np.float64) + 0.5
+    t = transform
+    return t.a * x + t.b * y + t.c, t.d * x + t.e * y + t.f
+
+
+def world_to_pixel(transform: Affine, wx: np.ndarray, wy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre coordinates ``(x=col, y=row)`` of world coordinates (inverse of the above)."""
+    inv = ~transform
+    wx = np.asarray(wx, dtype=np.float64)
+    wy = np.asarray(wy, dtype=np.float64)
+    return inv.a * wx + inv.b * wy + inv.c - 0.5, inv.d * wx + inv.e * wy + inv.f - 0.5
+
+
+def commit_store(tmp: str, final: str) -> None:
+    """Atomically replace ``final`` by the finished store ``tmp`` (same directory)."""
+    if os.path.exists(final):
+        old = f"{final}.old-{uuid.uuid4().hex[:8]}"
+        os.rename(final, old)
+        os.rename(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(tmp, final)
+
+
+def temporary_path(final: str | os.PathLike) -> str:
+    """A sibling path to write into before :func:`commit_store` (hidden, unique)."""
+    p = Path(final)
+    return str(p.with_name(f".{p.name}.partial-{uuid.uuid4().hex[:8]}"))
+
+
+def ingest(
+    src: str | os.PathLike | xr.DataArray,
+    out: str | os.PathLike,
+    *,
+    tile: int = 512,
+    nodata: float | None = None,
+    bands: list[int] | None = None,
+    client=None,
+) -> xr.DataArray:
+    """Write a scene to a Zarr v3 store chunked by tile, CRS and transform kept.
+
+    The store holds one array ``image`` (band, y, x), float32, NaN = nodata, chunked
+    ``(bands, tile, tile)``. It is written under a temporary name and renamed when
+    complete, so a killed job never leaves a store that looks finished.
+
+    Returns
+    -------
+    xarray.DataArray
+        The scene re-opened from the new store.
+    """
+    scene = src if isinstance(src, xr.DataArray) else open_scene(src, tile=tile, nodata=nodata, bands=bands)
+    scene = scene.chunk(_chunks(tile))
+    out = os.fspath(out)
+    tmp = temporary_path(out)
+    ds = scene.to_dataset(name=IMAGE_VAR)
+    ds[IMAGE_VAR].attrs = {k: v for k, v in scene.attrs.items() if k != "georeferenced"}
+    ds[IMAGE_VAR].attrs["georeferenced"] = int(bool(scene.attrs.get("georeferenced")))
+    ds[IMAGE_VAR].encoding = {}
+    try:
+        delayed = ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False)
+        if client is not None:
+            client.compute(delayed).result()
+        else:
+            delayed.compute()
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    commit_store(tmp, out)
+    reopened = open_scene(out, tile=tile)
+    reopened.attrs["source"] = scene.attrs.get("source", out)
+    return reopened
+
+
+class WindowReader:
+    """Pickleable, lazy reader of windows of a scene's Zarr ``image`` array.
+
+    Tasks on workers call :meth:`read` to fetch exactly the window they need.
+    """
+
+    def __init__(self, store: str, variable: str = IMAGE_VAR) -> None:
+        self.store = os.fspath(store)
+        self.variable = variable
+        self._array = None
+
+    def __getstate__(self):
+        return {"store": self.store, "variable": self.variable}
+
+    def __setstate__(self, state):
+        self.store, self.variable, self._array = state["store"], state["variable"], None
+
+    @property
+    def array(self) -> zarr.Array:
+        if self._array is None:
+            self._array = zarr.open_group(self.store, mode="r")[self.variable]
+        return self._array
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(self.array.shape)
+
+    def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
+        """Window ``[:, row0:row1, col0:col1]`` clipped to the array; float32, NaN outside."""
+        _, h, w = self.shape
+        out = np.full((self.shape[0], row1 - row0, col1 - col0), np.nan, dtype=np.float32)
+        r0, r1, c0, c1 = max(row0, 0), min(row1, h), max(col0, 0), min(col1, w)
+        if r1 > r0 and c1 > c0:
+            out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = self.array[:, r0:r1, c0:c1]
+        return out

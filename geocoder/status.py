@@ -1,0 +1,29 @@
+"""Per-pixel status codes of a registration (the ``status`` array of the output store)."""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class Status(IntEnum):
+    """What the displacement of a base pixel rests on.
+
+    OUTSIDE     0  no distorted data at ``p + d(p)`` (outside the overlap or nodata)
+    MATCHED     1  dense least-squares match
+    FILLED      2  filled by interpolation along the scan line
+    BLUNDER     3  match rejected as a blunder by the post-filter
+    NO_TEXTURE  4  not matched: too little texture
+    MODEL       5  displacement from the global polynomial only
+    """
+
+    OUTSIDE = 0
+    MATCHED = 1
+    FILLED = 2
+    BLUNDER = 3
+    NO_TEXTURE = 4
+    MODEL = 5
+
+
+def legend() -> dict[str, int]:
+    """Code table stored with the output (``status`` attribute ``flag_meanings``)."""
+    return {s.name.lower(): int(s) for s in Status}
