@@ -239,3 +239,41 @@ class WindowReader:
         if r1 > r0 and c1 > c0:
             out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = self.array[:, r0:r1, c0:c1]
         return out
+
+
+def write_geotiff(
+    path: str | os.PathLike,
+    array: np.ndarray,
+    *,
+    transform: Affine | None = None,
+    crs: str | None = None,
+    nodata: float | None = None,
+    dtype: str | None = None,
+) -> None:
+    """Write a ``(band, y, x)`` or ``(y, x)`` array as a tiled, deflate-compressed GeoTIFF.
+
+    Without ``transform`` and ``crs`` the file is a raw (not georeferenced) image.
+    """
+    import rasterio
+
+    data = np.asarray(array)
+    if data.ndim == 2:
+        data = data[None]
+    dtype = dtype or str(data.dtype)
+    if np.issubdtype(np.dtype(dtype), np.integer):
+        info = np.iinfo(dtype)
+        data = np.clip(np.rint(np.nan_to_num(data, nan=nodata if nodata is not None else 0)), info.min, info.max)
+    profile = {
+        "driver": "GTiff", "width": data.shape[2], "height": data.shape[1], "count": data.shape[0],
+        "dtype": dtype, "tiled": True, "blockxsize": 256, "blockysize": 256, "compress": "deflate",
+    }
+    if transform is not None:
+        profile["transform"] = transform
+    if crs is not None:
+        profile["crs"] = crs
+    if nodata is not None:
+        profile["nodata"] = nodata
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # NotGeoreferencedWarning for raw images
+        with rasterio.open(os.fspath(path), "w", **profile) as dst:
+            dst.write(data.astype(dtype))

@@ -71,6 +71,47 @@ def refine_translation(base: np.ndarray, dist: np.ndarray, matrix: np.ndarray) -
     return _h(matrix) @ t, float(shift.peak)
 
 
+def refine_affine(base: np.ndarray, dist: np.ndarray, matrix: np.ndarray, *, grid: int = 3, min_peak: float = MIN_PEAK) -> np.ndarray:
+    """Correct ``matrix`` (base -> dist, 3x3) to a full affine from local phase correlations.
+
+    The distorted overview is warped into base geometry; ``grid`` x ``grid`` half-size
+    windows are phase-correlated against the base; their shifts (weighted by the peak)
+    give a robust affine correction. This is seed 000's second matching stage (patches at
+    reduced resolution to take out affine distortion), which a similarity cannot model.
+    """
+    from ..kernels.polynomial import fit_polymap
+
+    h, w = base.shape
+    wh, ww = max(h // 2, 16), max(w // 2, 16)
+    if h < 32 or w < 32:
+        return _h(matrix)
+    warped = warp_into(dist, matrix, base.shape)
+    cx, cy, sx, sy, peaks = [], [], [], [], []
+    for r0 in np.linspace(0, h - wh, grid).astype(int):
+        for c0 in np.linspace(0, w - ww, grid).astype(int):
+            a = base[r0 : r0 + wh, c0 : c0 + ww]
+            b = warped[r0 : r0 + wh, c0 : c0 + ww]
+            if np.isfinite(b).mean() < 0.5 or np.isfinite(a).mean() < 0.5:
+                continue
+            shift = phase_correlation(a, b)
+            if np.isfinite(shift.dx) and shift.peak >= min_peak:
+                cx.append(c0 + (ww - 1) / 2)
+                cy.append(r0 + (wh - 1) / 2)
+                sx.append(shift.dx)
+                sy.append(shift.dy)
+                peaks.append(shift.peak)
+    if len(cx) < 4:
+        return _h(matrix)
+    cx, cy = np.asarray(cx), np.asarray(cy)
+    corr = fit_polymap(cx, cy, cx + np.asarray(sx), cy + np.asarray(sy), order=1, weights=np.asarray(peaks), min_points=4)
+    if corr.fit_info.reason == "too_few":
+        return _h(matrix)
+    # correction as a 3x3 matrix in base coordinates: p -> corr(p)
+    ex, ey = corr(np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    c = np.array([[ex[1] - ex[0], ex[2] - ex[0], ex[0]], [ey[1] - ey[0], ey[2] - ey[0], ey[0]], [0.0, 0.0, 1.0]])
+    return _h(matrix) @ c
+
+
 def align_overviews(
     base: np.ndarray,
     dist: np.ndarray,
@@ -80,6 +121,10 @@ def align_overviews(
     min_peak: float = MIN_PEAK,
 ) -> CoarseAlignment:
     """Coarse affine between two overviews, returned in full-resolution pixel frames.
+
+    Hypotheses: the georeference ``prior`` if given, else the Fourier-Mellin similarity and
+    the identity. Each gets its translation corrected by phase correlation, the one with the
+    highest peak wins, and local phase correlations then refine it to a full affine.
 
     Parameters
     ----------
@@ -93,30 +138,38 @@ def align_overviews(
     Raises
     ------
     MatchingError
-        If no rotation/scale/shift gives a correlation peak above ``min_peak``.
+        If no hypothesis gives a correlation peak above ``min_peak``.
     """
     o = _overview_frame(factor)
     o_inv = np.linalg.inv(o)
+    hypotheses: list[tuple[str, np.ndarray]] = []
     if prior is not None:
-        start = o_inv @ _h(prior) @ o
-        method = "georeference"
+        hypotheses.append(("georeference", o_inv @ _h(prior) @ o))
     else:
         sim = estimate_similarity(base, dist)
-        if not np.all(np.isfinite(sim.matrix)) or sim.peak < min_peak:
-            raise MatchingError(
-                f"no overlap found between the images (Fourier-Mellin peak {sim.peak:.3f} < {min_peak})"
-            )
-        start = _h(sim.matrix)
-        method = "fourier-mellin"
-    refined, peak = refine_translation(base, dist, start)
+        if np.all(np.isfinite(sim.matrix)):
+            hypotheses.append(("fourier-mellin", _h(sim.matrix)))
+        hypotheses.append(("translation", np.eye(3)))
+    best = None
+    for name, start in hypotheses:
+        refined, peak = refine_translation(base, dist, start)
+        if peak >= min_peak:
+            again, peak2 = refine_translation(base, dist, refined)
+            if peak2 >= peak:
+                refined, peak = again, peak2
+            name += "+shift"
+        else:
+            refined = start
+        if best is None or peak > best[2]:
+            best = (name, refined, peak)
+    name, matrix, peak = best
+    if peak < min_peak and prior is None:
+        raise MatchingError(f"no overlap found between the images (best correlation peak {peak:.3f} < {min_peak})")
     if peak >= min_peak:
-        # a second pass removes what the first shift estimate left (windowing bias)
-        again, peak2 = refine_translation(base, dist, refined)
-        if peak2 >= peak:
-            refined, peak = again, peak2
-        method += "+shift"
-        start = refined
-    elif prior is None:
-        raise MatchingError(f"no overlap found between the images (phase-correlation peak {peak:.3f})")
-    full = o @ start @ o_inv
-    return CoarseAlignment(matrix=full[:2], method=method, factor=factor, peak=float(peak))
+        for _ in range(2):
+            matrix = refine_affine(base, dist, matrix, min_peak=min_peak)
+        _, peak_after = refine_translation(base, dist, matrix)
+        name += "+affine"
+        peak = max(peak, peak_after)
+    full = o @ matrix @ o_inv
+    return CoarseAlignment(matrix=full[:2], method=name, factor=factor, peak=float(peak))

@@ -140,23 +140,67 @@ def correspond(
     stats["robust"] = int(ii.size)
     if ii.size == 0:
         return empty, TileMatchStats(**stats, reason="no pair survived")
-    # start the refinement from the tile's affine; its linear part refines the local geometry
-    corr = design((base_points.x[ii] - cx) / scale, (base_points.y[ii] - cy) / scale, 1) @ affine.coef
+    # refine from the paired distorted point; the tile affine's linear part corrects the
+    # local geometry of the prediction
     lin = affine.coef[1:].T / scale  # d(correction)/d(x, y)
-    jfull = jac[ii] + lin[None]
-    x0, y0 = px[ii] + corr[:, 0], py[ii] + corr[:, 1]
+    tp, refined = _refine(base, base_origin, base_points, ii, dist, dist_origin,
+                          dist_points.x[jj], dist_points.y[jj], jac[ii] + lin[None], weight[good], opts)
+    stats["refined"] = refined
+    return tp, TileMatchStats(**stats, reason="ok")
+
+
+def _refine(base, base_origin, base_points, ii, dist, dist_origin, x0, y0, jac, weight, opts):
+    """Least-squares refinement of the distorted positions of base points ``ii``."""
+    br0, bc0 = base_origin
+    dr0, dc0 = dist_origin
     big = extract_patches(base, base_points.x[ii] - bc0, base_points.y[ii] - br0, opts.refine)
-    fine = refine_shift(big, dist, x0 - dc0, y0 - dr0, jfull, opts.refine, max_move=opts.max_move)
+    fine = refine_shift(big, dist, x0 - dc0, y0 - dr0, jac, opts.refine, max_move=opts.max_move)
     acc = fine.ok & (fine.rho > opts.rho_final) & np.isfinite(big).all(axis=1)
-    stats["refined"] = int(acc.sum())
     tp = TiePoints.build(
         base_x=base_points.x[ii][acc],
         base_y=base_points.y[ii][acc],
         dist_x=fine.x[acc] + dc0,
         dist_y=fine.y[acc] + dr0,
-        weight=weight[good][acc],
+        weight=weight[acc],
         rho=fine.rho[acc],
         sigma_x=fine.sigma_x[acc],
         sigma_y=fine.sigma_y[acc],
     )
+    return tp, int(acc.sum())
+
+
+def correspond_guided(
+    base: np.ndarray,
+    base_origin: tuple[int, int],
+    base_points: InterestPoints,
+    dist: np.ndarray,
+    dist_origin: tuple[int, int],
+    predict: PolyMap,
+    opts: CorrespondenceOptions = CorrespondenceOptions(),
+) -> tuple[TiePoints, TileMatchStats]:
+    """Match every base point at its prediction (once a good mapping is known).
+
+    Used after the first pass: the prediction is then accurate to a pixel or better, so
+    each base interest point is refined by least squares straight from ``predict(p)``
+    (seed 003's second tie-point set on the pre-warped image). A robust affine of the
+    tile's refinements against the prediction removes blunders.
+    """
+    stats = {"base_points": len(base_points)}
+    if len(base_points) == 0:
+        return TiePoints.empty(), TileMatchStats(**stats, reason="no interest points")
+    px, py = predict(base_points.x, base_points.y)
+    jac = predict.jacobian(base_points.x, base_points.y)
+    ii = np.arange(len(base_points))
+    weight = np.sqrt(base_points.w)  # texture only: there is no pair correlation yet
+    tp, refined = _refine(base, base_origin, base_points, ii, dist, dist_origin, px, py, jac, weight, opts)
+    stats.update(candidates=len(base_points), correlated=refined, refined=refined)
+    if len(tp) >= opts.min_pairs:
+        cx, cy = tp.base_x.mean(), tp.base_y.mean()
+        scale = max(np.ptp(tp.base_x), np.ptp(tp.base_y), 1.0) / 2
+        qx, qy = predict(tp.base_x, tp.base_y)
+        obs = np.stack([tp.dist_x - qx, tp.dist_y - qy], axis=1)
+        fit = robust_fit(design((tp.base_x - cx) / scale, (tp.base_y - cy) / scale, 1), obs, min_points=opts.min_pairs)
+        if fit.reason != "too_few":
+            tp = tp.select(fit.inliers)
+    stats["robust"] = len(tp)
     return tp, TileMatchStats(**stats, reason="ok")

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap, fit_polymap
-from ..match.correspondence import CorrespondenceOptions, TileMatchStats, correspond
+from ..match.correspondence import CorrespondenceOptions, TileMatchStats, correspond, correspond_guided
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
 from ..tiles import Tile, TileGrid
@@ -40,12 +40,14 @@ def distorted_window(tile: Tile, predict: PolyMap, margin: float) -> tuple[int, 
     )
 
 
-def _tile_task(tile, base_reader, dist_reader, band, dist_band, bpts, dpts, predict, dwin, opts):
+def _tile_task(tile, base_reader, dist_reader, band, dist_band, bpts, dpts, predict, dwin, opts, guided):
     m = opts.margin
     r0, r1, c0, c1 = tile.window(m)
     base = base_reader.read(r0, r1, c0, c1)[band]
     dr0, dr1, dc0, dc1 = dwin
     dist = dist_reader.read(dr0, dr1, dc0, dc1)[dist_band]
+    if guided:
+        return correspond_guided(base, (r0, c0), bpts, dist, (dr0, dc0), predict, opts)
     return correspond(base, (r0, c0), bpts, dist, (dr0, dc0), dpts, predict, opts)
 
 
@@ -69,8 +71,10 @@ def match_tiles(
     band: int = 0,
     dist_band: int = 0,
     opts: CorrespondenceOptions = CorrespondenceOptions(),
+    guided: bool = False,
 ) -> tuple[TiePoints, list[TileMatchStats]]:
-    """Run :func:`~geocoder.match.correspondence.correspond` on every tile in parallel."""
+    """Match every tile in parallel: point pairs (seed 000 sec. 4.4) or, with ``guided``,
+    least squares from the prediction (:func:`~geocoder.match.correspondence.correspond_guided`)."""
     dshape = dist_reader.shape[1:]
     tasks = []
     for tile in grid:
@@ -84,9 +88,9 @@ def match_tiles(
             continue
         dsel = (dist_points.y >= dwin[0]) & (dist_points.y < dwin[1]) & (dist_points.x >= dwin[2]) & (dist_points.x < dwin[3])
         tasks.append(
-            dask.delayed(_tile_task, pure=True, name=f"correspond-{tile.key}-{dask.base.tokenize(predict.coef, opts)}")(
+            dask.delayed(_tile_task, pure=True, name=f"correspond-{tile.key}-{dask.base.tokenize(predict.coef, opts, guided)}")(
                 tile, base_reader, dist_reader, band, dist_band,
-                _subset(base_points, inside), _subset(dist_points, dsel), predict, dwin, opts,
+                _subset(base_points, inside), _subset(dist_points, dsel), predict, dwin, opts, guided,
             )
         )
     results = dask.compute(*tasks)

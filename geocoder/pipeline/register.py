@@ -49,7 +49,6 @@ class RegisterOptions:
     dist_band: int | None = None
     order: int = 2
     passes: int = 2
-    refine_d_max: float = 4.0
     min_tiepoints: int = 12
     interest: InterestOptions = field(default_factory=InterestOptions)
     correspondence: CorrespondenceOptions = field(default_factory=CorrespondenceOptions)
@@ -77,13 +76,14 @@ class RegisterSummary:
     rms: float = float("nan")
     sigma0: float = float("nan")
     coarse_method: str = ""
+    pass_tiepoints: list = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         total = sum(self.seconds.values())
         return [
             f"interest points: base {self.base_points}, distorted {self.distorted_points}",
-            f"tie points: {self.tiepoints} ({self.inliers} kept by the robust polynomial)",
+            f"tie points: {self.tiepoints} ({self.inliers} kept by the robust polynomial; per pass {self.pass_tiepoints})",
             f"robust RMS of tie-point residuals: {self.rms:.3f} px (sigma0 {self.sigma0:.3f} px)",
             f"coarse alignment: {self.coarse_method}",
             f"time: {total:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in self.seconds.items()) + ")",
@@ -151,17 +151,25 @@ def find_tiepoints(
     copts = opts.correspondence
     tp, mapping = TiePoints.empty(), predict
     with timer("correspondence"):
-        for p in range(opts.passes):
-            found, _ = match_tiles(base_reader, dist_reader, grid, bpts, dpts, predict, band=band, dist_band=dband, opts=copts)
+        # pass 1: pairs of interest points (seed 000 sec. 4.4); if the images defeat it but
+        # the coarse alignment is a full affine, match from the coarse prediction instead
+        found, _ = match_tiles(base_reader, dist_reader, grid, bpts, dpts, predict, band=band, dist_band=dband, opts=copts)
+        summary.pass_tiepoints.append(len(found))
+        if len(found) < opts.min_tiepoints and coarse.method.endswith("+affine"):
+            found, _ = match_tiles(base_reader, dist_reader, grid, bpts, dpts, predict, band=band, dist_band=dband, opts=copts, guided=True)
+            summary.pass_tiepoints.append(len(found))
+        if len(found) < opts.min_tiepoints:
+            raise MatchingError(
+                f"only {len(found)} tie points found between {base.attrs['source']} and {dist.attrs['source']}"
+            )
+        tp, mapping = fit_global(found, order=opts.order)
+        # later passes: every base point matched from the fitted polynomial
+        for _ in range(1, opts.passes):
+            found, _ = match_tiles(base_reader, dist_reader, grid, bpts, dpts, mapping, band=band, dist_band=dband, opts=copts, guided=True)
+            summary.pass_tiepoints.append(len(found))
             if len(found) < opts.min_tiepoints:
-                if p == 0:
-                    raise MatchingError(
-                        f"only {len(found)} tie points found between {base.attrs['source']} and {dist.attrs['source']}"
-                    )
                 break
             tp, mapping = fit_global(found, order=opts.order)
-            predict = mapping
-            copts = replace(copts, d_max=opts.refine_d_max)
     summary.tiepoints = len(tp)
     summary.inliers = int(tp.inlier.sum())
     res = np.hypot(tp.residual_x, tp.residual_y)[tp.inlier]

@@ -1,0 +1,130 @@
+"""Command line: ``geocoder register | ingest | demo``.
+
+Every command calls the same library functions a notebook would; ``--scheduler`` (default
+``DASK_SCHEDULER_ADDRESS``) chooses a running Dask cluster, otherwise a local one is started.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+import time
+
+import click
+
+from .errors import GeocoderError
+
+log = logging.getLogger("geocoder")
+
+
+def _setup_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    for noisy in ("distributed", "bokeh", "tornado", "asyncio", "rasterio", "numba"):
+        logging.getLogger(noisy).setLevel(logging.ERROR if verbose < 2 else logging.INFO)
+
+
+def _friendly(fn):
+    """Turn geocoder's own errors and bad option values into one line and exit code 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except (GeocoderError, ValueError) as exc:
+            click.echo(f"geocoder: error: {exc}", err=True)
+            sys.exit(2)
+
+    return wrapper
+
+
+scheduler_option = click.option(
+    "--scheduler",
+    envvar="DASK_SCHEDULER_ADDRESS",
+    default=None,
+    help="Dask scheduler address (default: $DASK_SCHEDULER_ADDRESS, else a local cluster).",
+)
+tile_option = click.option("--tile", default=512, show_default=True, type=int, help="Tile (chunk) size in pixels.")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", count=True, help="More log output (-vv for Dask's too).")
+@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
+@click.version_option(package_name="geocoder")
+def main(verbose: int, quiet: bool) -> None:
+    """Tile-parallel sub-pixel registration and geocoding of scanner imagery."""
+    _setup_logging(verbose, quiet)
+
+
+@main.command()
+@click.argument("base")
+@click.argument("distorted")
+@click.option("--out", required=True, help="Output Zarr store (written atomically).")
+@click.option("--resampling", default="bilinear", show_default=True, type=click.Choice(["nearest", "bilinear", "cubic", "lanczos"]))
+@tile_option
+@click.option("--band", default=1, show_default=True, help="1-based band used for matching.")
+@click.option("--dist-band", default=None, type=int, help="Band of DISTORTED used for matching (default --band).")
+@click.option("--order", default=2, show_default=True, type=click.IntRange(1, 3), help="Order of the global polynomial.")
+@click.option("--nodata", default=None, type=float, help="Extra nodata value of BASE.")
+@click.option("--dist-nodata", default=None, type=float, help="Extra nodata value of DISTORTED.")
+@scheduler_option
+@_friendly
+def register(base, distorted, out, resampling, tile, band, dist_band, order, nodata, dist_nodata, scheduler):
+    """Register DISTORTED onto the grid of BASE and write OUT (Zarr)."""
+    from .pipeline.register import register as run
+
+    t0 = time.perf_counter()
+    ds = run(
+        base, distorted, out=out, resampling=resampling, tile=tile, scheduler=scheduler,
+        band=band, dist_band=dist_band, order=order, nodata=nodata, dist_nodata=dist_nodata,
+    )
+    _print_summary(ds, time.perf_counter() - t0, out)
+
+
+def _print_summary(ds, seconds: float, out: str | None) -> None:
+    import json
+
+    from .pipeline.register import RegisterSummary
+
+    summary = RegisterSummary(**json.loads(ds.attrs["summary"]))
+    for line in summary.lines():
+        click.echo(line)
+    if out:
+        click.echo(f"wrote {out} in {seconds:.1f} s")
+
+
+@main.command()
+@click.argument("src")
+@click.argument("out")
+@tile_option
+@click.option("--nodata", default=None, type=float, help="Extra nodata value.")
+@scheduler_option
+@_friendly
+def ingest(src, out, tile, nodata, scheduler):
+    """Write SRC (GeoTIFF/COG) to a Zarr v3 store OUT chunked by tile, CRS kept."""
+    from .runtime import dask_client
+    from .scene import ingest as run
+
+    with dask_client(scheduler=scheduler) as c:
+        scene = run(src, out, tile=tile, nodata=nodata, client=c)
+    click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {tile}")
+
+
+@main.command()
+@click.option("--size", default=1024, show_default=True, help="Side of the demo scene in pixels.")
+@click.option("--seed", default=0, show_default=True, help="Random seed of the scene and the warp.")
+@click.option("--out", default="geocoder-demo", show_default=True, help="Directory for the demo's files.")
+@tile_option
+@scheduler_option
+@_friendly
+def demo(size, seed, out, tile, scheduler):
+    """Make a synthetic scene and a warped partner, register them, print the error."""
+    from .demo import run_demo
+
+    for line in run_demo(size=size, seed=seed, directory=out, tile=tile, scheduler=scheduler):
+        click.echo(line)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,37 @@
+"""Shared fixtures: a real LocalCluster with worker processes, the shared imagery, pairs."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from distributed import Client, LocalCluster
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def client():
+    """Two worker processes with one thread each, as on the CI machine."""
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        with Client(cluster) as c:
+            yield c
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED.is_dir():
+        pytest.fail(f"the shared imagery is missing: expected {SHARED} beside the project")
+    return SHARED
+
+
+def read_band(path: Path, band: int = 1, window: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """One band of a GeoTIFF as float64 (rows, cols), optionally a (row0, row1, col0, col1) crop."""
+    import rasterio
+    from rasterio.windows import Window
+
+    with rasterio.open(path) as src:
+        win = None if window is None else Window(window[2], window[0], window[3] - window[2], window[1] - window[0])
+        return src.read(band, window=win).astype(np.float64)

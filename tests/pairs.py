@@ -1,0 +1,60 @@
+"""Real images from ../shared/data warped by a known field, written as GeoTIFFs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from affine import Affine
+
+from geocoder.scene import write_geotiff
+from geocoder.simulate.warp import SyntheticPair, make_pair
+
+from conftest import read_band
+
+S2_REF = "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif"
+AERIAL = "baviaanskloof/ngi_rgb_byte_1.tif"
+
+
+@dataclass
+class PairFiles:
+    base: Path
+    distorted: Path
+    pair: SyntheticPair
+
+
+def real_pair(shared: Path, out: Path, *, which: str, size: int, seed: int, margin: int = 32, **kw) -> PairFiles:
+    """Crop a real image (no nodata inside), warp it with a known field, write both files.
+
+    The base keeps the real georeference of the crop; the distorted file is a raw image
+    (no georeference), as a scanner frame before geocoding.
+    """
+    import rasterio
+
+    if which == "s2":
+        path, bands, origin = shared / S2_REF, [1], (300, 1100)
+    elif which == "aerial":
+        path, bands, origin = shared / AERIAL, [1, 2, 3], (60, 107)
+    else:
+        raise ValueError(which)
+    r0, c0 = origin
+    win = (r0, r0 + size + 2 * margin, c0, c0 + size + 2 * margin)
+    src = np.stack([read_band(path, b, win) for b in bands])
+    assert (src > 0).all(), "the crop must be free of nodata"
+    pair = make_pair(src, shape=(size, size), seed=seed, margin=margin, **kw)
+    with rasterio.open(path) as f:
+        t = f.transform @ Affine.translation(c0 + margin, r0 + margin)
+        crs = f.crs
+    out.mkdir(parents=True, exist_ok=True)
+    base, dist = out / f"{which}-base.tif", out / f"{which}-distorted.tif"
+    write_geotiff(base, pair.base, transform=t, crs=crs)
+    write_geotiff(dist, pair.distorted)
+    return PairFiles(base, dist, pair)
+
+
+def tiepoint_errors(tp, pair: SyntheticPair) -> np.ndarray:
+    """Distance of every tie point's distorted position from the truth."""
+    bx, by = np.asarray(tp["base_x"]), np.asarray(tp["base_y"])
+    tx, ty = pair.field.displacement(bx, by)
+    return np.hypot(np.asarray(tp["dist_x"]) - bx - tx, np.asarray(tp["dist_y"]) - by - ty)
