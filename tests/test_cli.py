@@ -1,0 +1,65 @@
+"""The command line, run as a real subprocess against the test cluster."""
+
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from affine import Affine
+
+from geocoder.scene import write_geotiff
+from geocoder.simulate.texture import synthetic_ortho
+
+pytestmark = pytest.mark.cluster
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "geocoder.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def leftovers(directory):
+    return [p for p in os.listdir(directory) if p.startswith(".")]
+
+
+def test_missing_file(tmp_path, client):
+    r = run("register", tmp_path / "nope.tif", tmp_path / "nope2.tif", "--out", tmp_path / "o.zarr", "--scheduler", client.scheduler.address)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1] == f"geocoder: error: {tmp_path / 'nope.tif'}: no such file"
+    assert not (tmp_path / "o.zarr").exists()
+
+
+def test_flat_image_is_refused_and_leaves_nothing(tmp_path, client):
+    write_geotiff(tmp_path / "flat.tif", np.full((256, 256), 7.0, dtype=np.float32))
+    write_geotiff(tmp_path / "tex.tif", synthetic_ortho((256, 256), seed=1))
+    r = run("register", tmp_path / "flat.tif", tmp_path / "tex.tif", "--out", tmp_path / "o.zarr", "--tile", 128, "--scheduler", client.scheduler.address)
+    assert r.returncode == 2, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("geocoder: error: ") and "flat.tif" in last and "texture" in last
+    assert "Traceback" not in r.stderr
+    assert not (tmp_path / "o.zarr").exists() and leftovers(tmp_path) == []
+
+
+def test_no_overlap(tmp_path, client):
+    img = synthetic_ortho((256, 256), seed=2)
+    write_geotiff(tmp_path / "a.tif", img, transform=Affine(1, 0, 0, 0, -1, 0), crs="EPSG:32633")
+    write_geotiff(tmp_path / "b.tif", img, transform=Affine(1, 0, 10000, 0, -1, 0), crs="EPSG:32633")
+    r = run("register", tmp_path / "a.tif", tmp_path / "b.tif", "--out", tmp_path / "o.zarr", "--tile", 128, "--scheduler", client.scheduler.address)
+    assert r.returncode == 2
+    assert "does not overlap" in r.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "o.zarr").exists() and leftovers(tmp_path) == []
+
+
+def test_demo_reports_error_against_truth(tmp_path, client):
+    r = run("demo", "--size", 512, "--tile", 256, "--out", tmp_path / "demo", "--scheduler", client.scheduler.address)
+    assert r.returncode == 0, r.stderr
+    m = re.search(r"displacement field against truth: RMSE ([0-9.]+) px", r.stdout)
+    assert m, r.stdout
+    assert float(m.group(1)) < 0.1
+    assert (tmp_path / "demo" / "registered.zarr" / "zarr.json").exists()
+    # the CLI's register on the demo's files prints the summary
+    out = tmp_path / "again.zarr"
+    r = run("register", tmp_path / "demo/base.tif", tmp_path / "demo/distorted.tif", "--out", out, "--tile", 256, "--resampling", "cubic", "--scheduler", client.scheduler.address)
+    assert r.returncode == 0, r.stderr
+    assert "tie points:" in r.stdout and "robust RMS" in r.stdout and (out / "zarr.json").exists()
