@@ -1,0 +1,56 @@
+"""A real `dask scheduler` + `dask worker --preload workers/geocoder_preload.py` cluster."""
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from distributed import Client
+
+from geocoder import register
+from geocoder.scene import write_geotiff
+from geocoder.simulate.texture import synthetic_ortho
+from geocoder.simulate.warp import make_pair
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.cluster
+
+
+@pytest.fixture
+def preloaded_cluster(tmp_path):
+    bindir = Path(sys.executable).parent
+    sched_file = tmp_path / "scheduler.json"
+    env = dict(os.environ, DASK_CONFIG=str(ROOT / "workers" / "dask.yaml"))
+    procs = [subprocess.Popen([bindir / "dask", "scheduler", "--port", "0", "--dashboard-address", ":0", "--scheduler-file", sched_file],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        for _ in range(300):
+            if sched_file.exists():
+                break
+            time.sleep(0.1)
+        procs.append(subprocess.Popen([bindir / "dask", "worker", "--scheduler-file", sched_file, "--nthreads", "1",
+                                       "--preload", ROOT / "workers" / "geocoder_preload.py"],
+                                      env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
+        with Client(scheduler_file=str(sched_file), timeout=60) as c:
+            c.wait_for_workers(1, timeout=120)
+            yield c
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            p.wait(timeout=30)
+
+
+def test_register_on_preloaded_workers(tmp_path, preloaded_cluster):
+    c = preloaded_cluster
+    assert all(v["NUMBA_NUM_THREADS"] == "1" for v in c.run(lambda: dict(os.environ)).values())
+    src = synthetic_ortho((352, 352), seed=3)
+    pair = make_pair(src, shape=(256, 256), seed=3, margin=48)
+    write_geotiff(tmp_path / "b.tif", pair.base)
+    write_geotiff(tmp_path / "d.tif", pair.distorted)
+    ds = register(tmp_path / "b.tif", tmp_path / "d.tif", tile=128, client=c, out=tmp_path / "o.zarr")
+    inside = ds.status.values > 0
+    rmse = np.sqrt(np.mean(((ds.dx.values - pair.dx) ** 2 + (ds.dy.values - pair.dy) ** 2)[inside]))
+    assert rmse < 0.1
