@@ -30,15 +30,17 @@ def _is_zarr(path: str) -> bool:
     return p.endswith(".zarr") or (os.path.isdir(p) and os.path.exists(os.path.join(p, "zarr.json")))
 
 
-def _chunks(tile: int | None) -> dict:
-    t = tile or 512
+def _chunks(chunks: int | dict | None) -> dict:
+    if isinstance(chunks, dict):
+        return {"band": -1, **chunks}
+    t = chunks or 512
     return {"band": -1, "y": t, "x": t}
 
 
 def open_scene(
     path: str | os.PathLike,
     *,
-    tile: int | None = 512,
+    chunks: int | dict | None = 512,
     nodata: float | None = None,
     bands: list[int] | None = None,
 ) -> xr.DataArray:
@@ -49,8 +51,9 @@ def open_scene(
     path : str or PathLike
         A GeoTIFF/COG (anything GDAL reads) or a Zarr store written by :func:`ingest`
         (local path or fsspec URL).
-    tile : int, optional
-        Chunk size in y and x (the tile of the tile-parallel stages).
+    chunks : int or dict, optional
+        Chunk size in y and x (the tile of the tile-parallel stages), or a dict
+        ``{"y": ..., "x": ...}``; bands always form one chunk.
     nodata : float, optional
         Value to treat as nodata in addition to the file's declared nodata (some products,
         e.g. converted JPEG2000, do not declare it).
@@ -78,13 +81,13 @@ def open_scene(
             if IMAGE_VAR not in ds:
                 raise InputError(spath, f"Zarr store has no '{IMAGE_VAR}' array (was it written by `geocoder ingest`?)")
             da = ds[IMAGE_VAR]
-            if tile:
-                da = da.chunk(_chunks(tile))
+            if chunks:
+                da = da.chunk(_chunks(chunks))
             source_dtype = da.attrs.get("source_dtype", str(da.dtype))
         else:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # NotGeoreferencedWarning for raw frames
-                da = rioxarray.open_rasterio(spath, masked=True, chunks=_chunks(tile), lock=False, cache=False)
+                da = rioxarray.open_rasterio(spath, masked=True, chunks=_chunks(chunks), lock=False, cache=False)
             source_dtype = str(da.encoding.get("rasterio_dtype", da.encoding.get("dtype", da.dtype)))
             if isinstance(da, list):
                 raise InputError(spath, "has several subdatasets; open one of them")
@@ -181,7 +184,7 @@ def ingest(
     xarray.DataArray
         The scene re-opened from the new store.
     """
-    scene = src if isinstance(src, xr.DataArray) else open_scene(src, tile=tile, nodata=nodata, bands=bands)
+    scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands)
     scene = scene.chunk(_chunks(tile))
     out = os.fspath(out)
     tmp = temporary_path(out)
@@ -199,7 +202,7 @@ def ingest(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     commit_store(tmp, out)
-    reopened = open_scene(out, tile=tile)
+    reopened = open_scene(out, chunks=tile)
     reopened.attrs["source"] = scene.attrs.get("source", out)
     return reopened
 

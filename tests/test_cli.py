@@ -63,3 +63,15 @@ def test_demo_reports_error_against_truth(tmp_path, client):
     r = run("register", tmp_path / "demo/base.tif", tmp_path / "demo/distorted.tif", "--out", out, "--tile", 256, "--resampling", "cubic", "--scheduler", client.scheduler.address)
     assert r.returncode == 0, r.stderr
     assert "tie points:" in r.stdout and "robust RMS" in r.stdout and (out / "zarr.json").exists()
+
+
+@pytest.mark.data
+def test_ingest_command(shared_data, tmp_path, client):
+    out = tmp_path / "rgb.zarr"
+    r = run("ingest", shared_data / "landsat7_rasterio/RGB.byte.tif", out, "--tile", 256, "--scheduler", client.scheduler.address)
+    assert r.returncode == 0, r.stderr
+    assert "3 band(s), 718 x 791 px" in r.stdout
+    from geocoder import open_scene
+
+    z = open_scene(out)
+    assert z.rio.crs.to_epsg() == 32618 and z.chunks[1][0] == 512 and z.shape == (3, 718, 791)

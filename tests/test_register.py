@@ -88,3 +88,19 @@ def test_reproducible_and_nearly_independent_of_tile_size(shared_data, tmp_path,
     assert np.nanmax(np.abs(a.dx.values - c.dx.values)) < 0.01
     assert np.nanmax(np.abs(a.dy.values - c.dy.values)) < 0.01
     assert (a.status.values == c.status.values).mean() > 0.999
+
+
+def test_real_pair_two_sensors_from_georeference(shared_data, tmp_path, client):
+    """Pair B: Sentinel-2 B4 (10 m) <- Landsat 8 B4 (30 m, 24 bands), 10 days apart."""
+    ds = register(
+        shared_data / "baviaanskloof/sentinel2_b432_byte.tif", shared_data / "baviaanskloof/landsat8_byte.tif",
+        out=tmp_path / "b.zarr", band=1, dist_band=4, client=client,
+    )
+    s = json.loads(ds.attrs["summary"])
+    assert s["coarse_method"].startswith("georeference")
+    assert s["inliers"] >= 100 and s["rms"] < 0.5  # residuals in 30 m Landsat pixels
+    assert ds.registered.sizes["band"] == 24 and ds.registered.shape[1:] == (1361, 797)
+    # the mapping is close to the georeference: 1/3 scale, sub-pixel offset
+    m = PolyMap.from_dict(json.loads(ds.attrs["mapping"]))
+    jac = m.jacobian(np.array([400.0]), np.array([680.0]))[0]
+    np.testing.assert_allclose(jac, np.eye(2) / 3, atol=0.01)

@@ -15,7 +15,7 @@ RGB = "landsat7_rasterio/RGB.byte.tif"
 
 @pytest.mark.data
 def test_open_geotiff_keeps_crs_and_masks_nodata(shared_data):
-    s = open_scene(shared_data / RGB, tile=256)
+    s = open_scene(shared_data / RGB, chunks=256)
     assert s.dims == ("band", "y", "x") and s.shape == (3, 718, 791)
     assert s.dtype == np.float32 and s.chunks[1][0] == 256
     assert s.rio.crs.to_epsg() == 32618

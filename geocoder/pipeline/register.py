@@ -235,8 +235,8 @@ def register(
         parent = os.path.dirname(os.path.abspath(out))
         if not os.path.isdir(parent):
             raise InputError(out, "the output's parent directory does not exist")
-    bscene = base if isinstance(base, xr.DataArray) else open_scene(base, tile=tile, nodata=nodata)
-    dscene = distorted if isinstance(distorted, xr.DataArray) else open_scene(distorted, tile=tile, nodata=dist_nodata)
+    bscene = base if isinstance(base, xr.DataArray) else open_scene(base, chunks=tile, nodata=nodata)
+    dscene = distorted if isinstance(distorted, xr.DataArray) else open_scene(distorted, chunks=tile, nodata=dist_nodata)
     for scene, b in ((bscene, opts.band), (dscene, opts.dist_band or opts.band)):
         if not 1 <= b <= scene.sizes["band"]:
             raise InputError(scene.attrs.get("source"), f"has {scene.sizes['band']} band(s); band {b} does not exist")
@@ -282,7 +282,8 @@ def register(
 
 
 def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse: CoarseAlignment, opts: RegisterOptions) -> xr.Dataset:
-    coords = {k: v for k, v in scene.coords.items()}
+    coords = {k: v for k, v in scene.coords.items() if k != "band"}
+    coords["band"] = np.arange(1, registered.shape[0] + 1)  # the distorted image's bands
     ds = xr.Dataset(
         {
             "registered": (("band", "y", "x"), registered),
