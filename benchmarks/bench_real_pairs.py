@@ -33,7 +33,7 @@ def main() -> None:
         for name, base, dist, kw in PAIRS:
             t0 = time.perf_counter()
             try:
-                ds = geocoder.register(DATA / base, DATA / dist, client=c, tile=512, **kw)
+                ds = geocoder.register(DATA / base, DATA / dist, client=c, tile=512, dense=False, **kw)
             except geocoder.GeocoderError as exc:
                 rows.append((name, f"error: {exc}", "", "", "", "", ""))
                 continue

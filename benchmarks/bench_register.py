@@ -89,11 +89,11 @@ def speed(size: int, work: Path) -> None:
     rows = []
     for workers in (1, 2):
         with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, Client(cl) as c:
-            register(work / "b.tif", work / "d.tif", tile=512, client=c, out=work / "warm.zarr")  # compile numba in workers
+            register(work / "b.tif", work / "d.tif", tile=512, client=c, out=work / "warm.zarr", dense=False)  # compile numba in workers
             t0 = time.perf_counter()
             out = work / f"out{workers}.zarr"
             with PeakWorkerMemory(c) as mem:
-                ds = register(work / "b.tif", work / "d.tif", tile=512, client=c, out=out)
+                ds = register(work / "b.tif", work / "d.tif", tile=512, client=c, out=out, dense=False)
             total = time.perf_counter() - t0
             s = json.loads(ds.attrs["summary"])
             n, worst, rmse, _ = _errors(out, pair, ds)
@@ -118,7 +118,7 @@ def accuracy(work: Path) -> None:
             for seed in (7, 8, 9):
                 files = real_pair(SHARED, work / f"{which}{seed}", which=which, size=size, seed=seed)
                 out = work / f"{which}{seed}.zarr"
-                ds = register(files.base, files.distorted, out=out, tile=tile, client=c)
+                ds = register(files.base, files.distorted, out=out, tile=tile, client=c, dense=False)
                 s = json.loads(ds.attrs["summary"])
                 n, worst, rmse, cover = _errors(out, files.pair, ds)
                 rows.append((f"{which} {size}px seed {seed}", float(np.hypot(files.pair.dx, files.pair.dy).max()), n, worst, s["rms"], rmse, cover))
@@ -130,7 +130,7 @@ def accuracy(work: Path) -> None:
             write_geotiff(work / f"sb{seed}.tif", pair.base)
             write_geotiff(work / f"sd{seed}.tif", pair.distorted)
             opts = RegisterOptions(interest=InterestOptions(cell=32), min_tiepoints=6)
-            ds = register(work / f"sb{seed}.tif", work / f"sd{seed}.tif", tile=128, order=1, client=c, options=opts)
+            ds = register(work / f"sb{seed}.tif", work / f"sd{seed}.tif", tile=128, order=1, client=c, options=opts, dense=False)
             s = json.loads(ds.attrs["summary"])
             n, worst, rmse, cover = _errors(None, pair, ds)
             rows.append((f"seed 4.5 affine 128px seed {seed}", float(np.hypot(pair.dx, pair.dy).max()), n, worst, s["rms"], rmse, cover))

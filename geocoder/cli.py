@@ -66,18 +66,19 @@ def main(verbose: int, quiet: bool) -> None:
 @click.option("--band", default=1, show_default=True, help="1-based band used for matching.")
 @click.option("--dist-band", default=None, type=int, help="Band of DISTORTED used for matching (default --band).")
 @click.option("--order", default=2, show_default=True, type=click.IntRange(1, 3), help="Order of the global polynomial.")
+@click.option("--dense/--no-dense", default=True, show_default=True, help="Match every pixel, or stop at the polynomial.")
 @click.option("--nodata", default=None, type=float, help="Extra nodata value of BASE.")
 @click.option("--dist-nodata", default=None, type=float, help="Extra nodata value of DISTORTED.")
 @scheduler_option
 @_friendly
-def register(base, distorted, out, resampling, tile, band, dist_band, order, nodata, dist_nodata, scheduler):
+def register(base, distorted, out, resampling, tile, band, dist_band, order, dense, nodata, dist_nodata, scheduler):
     """Register DISTORTED onto the grid of BASE and write OUT (Zarr)."""
     from .pipeline.register import register as run
 
     t0 = time.perf_counter()
     ds = run(
         base, distorted, out=out, resampling=resampling, tile=tile, scheduler=scheduler,
-        band=band, dist_band=dist_band, order=order, nodata=nodata, dist_nodata=dist_nodata,
+        band=band, dist_band=dist_band, order=order, dense=dense, nodata=nodata, dist_nodata=dist_nodata,
     )
     _print_summary(ds, time.perf_counter() - t0, out)
 

@@ -7,11 +7,10 @@ from pathlib import Path
 
 import numpy as np
 from affine import Affine
+from conftest import read_band
 
 from geocoder.scene import write_geotiff
 from geocoder.simulate.warp import SyntheticPair, make_pair
-
-from conftest import read_band
 
 S2_REF = "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif"
 AERIAL = "baviaanskloof/ngi_rgb_byte_1.tif"

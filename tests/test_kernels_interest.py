@@ -2,11 +2,10 @@ import dask.array as da
 import numpy as np
 import pytest
 import scipy.ndimage as ndi
+from conftest import read_band
 
 from geocoder.kernels.interest import detect, foerstner, select_points
 from geocoder.pipeline.detect import InterestOptions, interest_points
-
-from conftest import read_band
 
 
 def _corner_image():

@@ -5,6 +5,8 @@ import json
 import numpy as np
 import pytest
 import xarray as xr
+from conftest import read_band
+from pairs import real_pair, tiepoint_errors
 
 from geocoder import RegisterOptions, Status, register
 from geocoder.kernels.polynomial import PolyMap
@@ -12,14 +14,11 @@ from geocoder.pipeline.detect import InterestOptions
 from geocoder.scene import write_geotiff
 from geocoder.simulate.warp import seed_affine_experiment
 
-from conftest import read_band
-from pairs import real_pair, tiepoint_errors
-
 pytestmark = [pytest.mark.cluster, pytest.mark.data]
 
 
 def _check_case(files, out, client, *, tile, resampling="bilinear"):
-    ds = register(files.base, files.distorted, out=out, tile=tile, client=client, resampling=resampling)
+    ds = register(files.base, files.distorted, out=out, tile=tile, client=client, resampling=resampling, dense=False)
     pair = files.pair
     tp = xr.open_zarr(out, group="tiepoints", consolidated=False).compute()
     err = tiepoint_errors(tp, pair)
@@ -64,7 +63,7 @@ def test_seed_affine_experiment(shared_data, tmp_path, client):
         write_geotiff(b, pair.base)
         write_geotiff(d, pair.distorted)
         opts = RegisterOptions(interest=InterestOptions(cell=32), min_tiepoints=6)
-        ds = register(b, d, tile=128, order=1, client=client, options=opts)
+        ds = register(b, d, tile=128, order=1, client=client, options=opts, dense=False)
         tp = ds.attrs["tiepoints"]
         inl = tp.inlier.values
         err = tiepoint_errors(tp, pair)
@@ -80,9 +79,9 @@ def test_seed_affine_experiment(shared_data, tmp_path, client):
 def test_reproducible_and_nearly_independent_of_tile_size(shared_data, tmp_path, client):
     """Same inputs give bitwise-equal output; another tiling changes dx/dy by < 0.01 px."""
     files = real_pair(shared_data, tmp_path, which="s2", size=512, seed=3)
-    a = register(files.base, files.distorted, tile=256, client=client)
-    b = register(files.base, files.distorted, tile=256, client=client)
-    c = register(files.base, files.distorted, tile=128, client=client)
+    a = register(files.base, files.distorted, tile=256, client=client, dense=False)
+    b = register(files.base, files.distorted, tile=256, client=client, dense=False)
+    c = register(files.base, files.distorted, tile=128, client=client, dense=False)
     np.testing.assert_array_equal(a.dx.values, b.dx.values)
     np.testing.assert_array_equal(a.registered.values, b.registered.values)
     assert np.nanmax(np.abs(a.dx.values - c.dx.values)) < 0.01
@@ -94,7 +93,7 @@ def test_real_pair_two_sensors_from_georeference(shared_data, tmp_path, client):
     """Pair B: Sentinel-2 B4 (10 m) <- Landsat 8 B4 (30 m, 24 bands), 10 days apart."""
     ds = register(
         shared_data / "baviaanskloof/sentinel2_b432_byte.tif", shared_data / "baviaanskloof/landsat8_byte.tif",
-        out=tmp_path / "b.zarr", band=1, dist_band=4, client=client,
+        out=tmp_path / "b.zarr", band=1, dist_band=4, client=client, dense=False,
     )
     s = json.loads(ds.attrs["summary"])
     assert s["coarse_method"].startswith("georeference")

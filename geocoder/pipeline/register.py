@@ -15,28 +15,34 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 
-import dask
+import dask.array as da
 import numpy as np
 import xarray as xr
 
 from ..errors import InputError, MatchingError
-from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
+from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
-from ..scene import IMAGE_VAR, WindowReader, commit_store, ingest, open_scene, temporary_path
-from ..status import legend
+from ..scene import WindowReader, commit_store, ingest, open_scene, temporary_path
+from ..status import Status, legend
 from ..tiles import TileGrid
 from .coarse import coarse_alignment
 from .correspond import fit_global, match_tiles
+from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points
 from .resample import model_status, polynomial_displacement, resample
 
 log = logging.getLogger("geocoder")
 
 RESAMPLING = ("nearest", "bilinear", "cubic", "lanczos")
+LONG_NAMES = {
+    "sigma_x": "standard deviation of dx from the least-squares match",
+    "sigma_y": "standard deviation of dy from the least-squares match",
+    "correlation": "correlation coefficient of the least-squares match",
+}
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,9 @@ class RegisterOptions:
     interest: InterestOptions = field(default_factory=InterestOptions)
     correspondence: CorrespondenceOptions = field(default_factory=CorrespondenceOptions)
     use_georeference: bool = True
+    dense: bool = True
+    matching: DenseOptions = field(default_factory=DenseOptions)
+    postfilter: PostFilterOptions = field(default_factory=PostFilterOptions)
 
     def validate(self) -> None:
         if self.resampling not in RESAMPLING:
@@ -77,6 +86,10 @@ class RegisterSummary:
     sigma0: float = float("nan")
     coarse_method: str = ""
     pass_tiepoints: list = field(default_factory=list)
+    dense_rounds: int = 0
+    dense_converged: bool = True
+    dense_new_per_round: list = field(default_factory=list)
+    status_counts: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
@@ -86,6 +99,12 @@ class RegisterSummary:
             f"tie points: {self.tiepoints} ({self.inliers} kept by the robust polynomial; per pass {self.pass_tiepoints})",
             f"robust RMS of tie-point residuals: {self.rms:.3f} px (sigma0 {self.sigma0:.3f} px)",
             f"coarse alignment: {self.coarse_method}",
+            *(
+                [f"dense matching: {self.dense_rounds} round(s) of halo exchange"
+                 f"{'' if self.dense_converged else ' (round limit reached)'}, new matches per round {self.dense_new_per_round}"]
+                if self.dense_rounds else []
+            ),
+            *(["pixels: " + ", ".join(f"{k} {v}" for k, v in self.status_counts.items())] if self.status_counts else []),
             f"time: {total:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in self.seconds.items()) + ")",
         ]
 
@@ -190,6 +209,7 @@ def register(
     band: int = 1,
     dist_band: int | None = None,
     order: int = 2,
+    dense: bool = True,
     nodata: float | None = None,
     dist_nodata: float | None = None,
     options: RegisterOptions | None = None,
@@ -212,6 +232,9 @@ def register(
         1-based band used for matching (``dist_band`` defaults to ``band``).
     order : int
         Order of the global polynomial (2 = the seed's quadratic).
+    dense : bool
+        Match every pixel (region-growing least squares with halo exchange, scan-line
+        post-filter); False stops at the global polynomial.
     nodata, dist_nodata : float, optional
         Extra nodata values for inputs that do not declare theirs.
     options : RegisterOptions, optional
@@ -227,7 +250,7 @@ def register(
     """
     opts = replace(
         options or RegisterOptions(), tile=tile, resampling=resampling, band=band,
-        dist_band=dist_band, order=order,
+        dist_band=dist_band, order=order, dense=dense,
     )
     opts.validate()
     if out is not None:
@@ -254,14 +277,34 @@ def register(
             tp, mapping, coarse = find_tiepoints(bscene, dscene, breader, dreader, opts, summary, timer)
             chunks = bscene.data.chunks[1:]
             dx, dy = polynomial_displacement(mapping, chunks)
+            extra = {}
+            if opts.dense:
+                with timer("dense matching"):
+                    grid = TileGrid.from_chunks(chunks)
+                    state = os.path.join(work, "dense.zarr")
+                    result = grow_tiles(
+                        breader, dreader, grid, seeds_from_tiepoints(tp, mapping), mapping, state,
+                        band=opts.band - 1, dist_band=(opts.dist_band or opts.band) - 1, opts=opts.matching,
+                    )
+                summary.dense_rounds = result.rounds
+                summary.dense_converged = result.converged
+                summary.dense_new_per_round = result.new_per_round
+                field_ = dense_field(state, opts.tile, (dx, dy), opts.postfilter)
+                dx, dy = field_["dx"], field_["dy"]
+                extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
             registered = resample(dreader, dx, dy, method=opts.resampling)
             status = model_status(registered)
-            ds = _output_dataset(bscene, registered, dx, dy, status, mapping, coarse, opts)
+            if opts.dense:
+                status = da.where(status == Status.OUTSIDE, status, field_["status"]).astype(np.uint8)
+            ds = _output_dataset(bscene, registered, dx, dy, status, mapping, coarse, opts, extra)
             with timer("resampling"):
                 if out is None:
                     ds = ds.compute()
                 else:
                     ds.to_zarr(tmp_out, mode="w", zarr_format=3, consolidated=False, compute=False).compute()
+            written = ds.status if out is None else xr.open_zarr(tmp_out, consolidated=False).status
+            counts = np.bincount(np.asarray(written.values).ravel(), minlength=len(Status))
+            summary.status_counts = {Status(i).name.lower(): int(n) for i, n in enumerate(counts) if n}
             ds.attrs["summary"] = json.dumps(asdict(summary))
             if out is None:
                 ds.attrs["tiepoints"] = _tiepoint_dataset(tp)
@@ -281,7 +324,7 @@ def register(
     return result
 
 
-def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse: CoarseAlignment, opts: RegisterOptions) -> xr.Dataset:
+def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse: CoarseAlignment, opts: RegisterOptions, extra: dict) -> xr.Dataset:
     coords = {k: v for k, v in scene.coords.items() if k != "band"}
     coords["band"] = np.arange(1, registered.shape[0] + 1)  # the distorted image's bands
     ds = xr.Dataset(
@@ -290,6 +333,10 @@ def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse:
             "dx": (("y", "x"), dx, {"long_name": "x_distorted - x_base", "units": "pixel"}),
             "dy": (("y", "x"), dy, {"long_name": "y_distorted - y_base", "units": "pixel"}),
             "status": (("y", "x"), status, {"flag_meanings": json.dumps(legend())}),
+            **{
+                k: (("y", "x"), v, {"long_name": LONG_NAMES[k], "units": "pixel" if k != "correlation" else "1"})
+                for k, v in extra.items()
+            },
         },
         coords=coords,
     )

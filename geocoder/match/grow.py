@@ -1,0 +1,193 @@
+"""Best-first region growing of least-squares matches (Otto & Chau 1989; seed 003 sec. 7).
+
+Seeds are matched first; every accepted match predicts its unmatched neighbours on the
+lattice (grid step ``step``) through its own affine, and those predictions wait in a
+priority queue ordered by the quality of the match that made them (the largest variance of
+its shift, smaller first). The first acceptable match of a pixel is kept; a pixel whose
+match fails may be tried again from another neighbour, up to ``max_tries`` times. All of it
+runs in numba: no Python per pixel.
+
+State arrays are window-sized: ``params`` (h, w, 12) holds the ALSC fields
+(:data:`geocoder.kernels.alsc.FIELDS`, positions in the distorted window's frame) and
+``code`` (h, w) int8 the exit code of the last attempt (``UNVISITED`` before any).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ..kernels.alsc import AlscOptions, alsc_point
+
+UNVISITED = -1
+NFIELDS = 12
+
+_N4 = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
+_N8 = np.array([[0, 1], [1, 0], [0, -1], [-1, 0], [1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=np.int64)
+
+
+@numba.njit(nogil=True, cache=True)
+def _heap_push(keys, items, parents, size, key, item, parent):
+    if size == keys.size:
+        nk = np.empty(keys.size * 2, keys.dtype)
+        ni = np.empty(items.size * 2, items.dtype)
+        npr = np.empty(parents.size * 2, parents.dtype)
+        nk[:size] = keys[:size]
+        ni[:size] = items[:size]
+        npr[:size] = parents[:size]
+        keys, items, parents = nk, ni, npr
+    i = size
+    keys[i], items[i], parents[i] = key, item, parent
+    while i > 0:
+        p = (i - 1) // 2
+        if keys[p] < keys[i] or (keys[p] == keys[i] and items[p] <= items[i]):
+            break
+        keys[p], keys[i] = keys[i], keys[p]
+        items[p], items[i] = items[i], items[p]
+        parents[p], parents[i] = parents[i], parents[p]
+        i = p
+    return keys, items, parents, size + 1
+
+
+@numba.njit(nogil=True, cache=True)
+def _heap_pop(keys, items, parents, size):
+    key, item, parent = keys[0], items[0], parents[0]
+    size -= 1
+    keys[0], items[0], parents[0] = keys[size], items[size], parents[size]
+    i = 0
+    while True:
+        left = 2 * i + 1
+        if left >= size:
+            break
+        c = left
+        right = left + 1
+        if right < size and (keys[right] < keys[left] or (keys[right] == keys[left] and items[right] < items[left])):
+            c = right
+        if keys[i] < keys[c] or (keys[i] == keys[c] and items[i] <= items[c]):
+            break
+        keys[c], keys[i] = keys[i], keys[c]
+        items[c], items[i] = items[i], items[c]
+        parents[c], parents[i] = parents[i], parents[c]
+        i = c
+    return key, item, parent, size
+
+
+@numba.njit(nogil=True, cache=True)
+def _quality(p):
+    return max(p[8], p[9])  # larger of sigma_x, sigma_y: smaller is better
+
+
+@numba.njit(nogil=True, cache=True)
+def grow(
+    base, dist, grad_x, grad_y, seeds, params, code, tries, region, step, lattice_origin,
+    neighbours, max_tries, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma, min_det,
+):
+    """Grow matches from ``seeds`` inside ``region``; returns the number of new matches.
+
+    Parameters
+    ----------
+    base, dist, grad_x, grad_y : 2-D float32 windows (see :func:`~geocoder.kernels.alsc.alsc_point`).
+    seeds : float64 (k, 10)
+        ``row, col`` (base window) then the 8 start parameters (distorted window frame).
+    params, code, tries : window-sized state, updated in place.
+    region : int64[4]
+        ``row0, row1, col0, col1`` (half open, base window) where matches may be made.
+    step : int
+        Lattice spacing; only pixels with ``(row - lattice_origin[0]) % step == 0`` (same
+        for columns) are matched.
+    neighbours : int64 (m, 2)
+        Neighbour offsets in lattice units (4- or 8-neighbourhood).
+    """
+    h, w = code.shape
+    cap = max(1024, seeds.shape[0] * 8)
+    keys = np.empty(cap, np.float64)
+    items = np.empty(cap, np.int64)
+    parents = np.empty(cap, np.int64)
+    size = 0
+    out = np.empty(NFIELDS, np.float64)
+    init = np.empty(8, np.float64)
+    new = 0
+    r0, r1, c0, c1 = region[0], region[1], region[2], region[3]
+    # seeds first, in the order given; an accepted seed is queued as its own parent
+    for k in range(seeds.shape[0]):
+        r, c = int(seeds[k, 0]), int(seeds[k, 1])
+        if r < r0 or r >= r1 or c < c0 or c >= c1 or code[r, c] == 0:
+            continue
+        if (r - lattice_origin[0]) % step != 0 or (c - lattice_origin[1]) % step != 0:
+            continue
+        for j in range(8):
+            init[j] = seeds[k, 2 + j]
+        e = alsc_point(
+            base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
+            max_sigma, min_det,
+        )
+        code[r, c] = e
+        if e == 0:
+            params[r, c, :] = out
+            new += 1
+            keys, items, parents, size = _heap_push(keys, items, parents, size, _quality(out), r * w + c, -1)
+    while size > 0:
+        key, item, parent, size = _heap_pop(keys, items, parents, size)
+        r, c = item // w, item % w
+        if parent >= 0:
+            # a prediction for (r, c) from an accepted neighbour: match it
+            if code[r, c] == 0 or tries[r, c] >= max_tries:
+                continue
+            pr, pc = parent // w, parent % w
+            du, dv = float(c - pc), float(r - pr)
+            p = params[pr, pc]
+            init[0] = p[0] + p[2] * du + p[3] * dv
+            init[1] = p[1] + p[4] * du + p[5] * dv
+            for j in range(2, 8):
+                init[j] = p[j]
+            tries[r, c] += 1
+            e = alsc_point(
+                base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift,
+                min_rho, max_sigma, min_det,
+            )
+            code[r, c] = e
+            if e != 0:
+                continue
+            params[r, c, :] = out
+            new += 1
+            key = _quality(out)
+        # (r, c) is accepted: queue its unmatched neighbours with it as the parent
+        for n in range(neighbours.shape[0]):
+            rr = r + neighbours[n, 0] * step
+            cc = c + neighbours[n, 1] * step
+            if rr < r0 or rr >= r1 or cc < c0 or cc >= c1:
+                continue
+            if code[rr, cc] == 0 or tries[rr, cc] >= max_tries:
+                continue
+            keys, items, parents, size = _heap_push(keys, items, parents, size, key, rr * w + cc, r * w + c)
+    return new
+
+
+def grow_window(
+    base: np.ndarray,
+    dist: np.ndarray,
+    grad: tuple[np.ndarray, np.ndarray],
+    seeds: np.ndarray,
+    params: np.ndarray,
+    code: np.ndarray,
+    region: tuple[int, int, int, int],
+    *,
+    options: AlscOptions,
+    step: int = 1,
+    lattice_origin: tuple[int, int] = (0, 0),
+    neighbours: int = 4,
+    max_tries: int = 2,
+) -> int:
+    """Python entry to :func:`grow` with options unpacked; returns the number of new matches."""
+    tries = np.zeros(code.shape, np.uint8)
+    offsets = _N4 if neighbours == 4 else _N8
+    o = options
+    return int(
+        grow(
+            np.ascontiguousarray(base, dtype=np.float32), np.ascontiguousarray(dist, dtype=np.float32),
+            np.ascontiguousarray(grad[0], dtype=np.float32), np.ascontiguousarray(grad[1], dtype=np.float32),
+            np.ascontiguousarray(seeds, dtype=np.float64), params, code, tries,
+            np.asarray(region, dtype=np.int64), int(step), np.asarray(lattice_origin, dtype=np.int64),
+            offsets, int(max_tries), *o.kernel_args(),
+        )
+    )

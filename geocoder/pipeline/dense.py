@@ -1,0 +1,246 @@
+"""Tile-parallel dense matching: region growing with halo exchange between tiles.
+
+Round 0 seeds every tile with the tie points in its core. A task grows matches inside its
+tile plus a halo, writes the matches of its core into the state store (Zarr, chunk = tile,
+so writes never collide) and returns the matches it made in the halo: those belong to the
+neighbouring tiles and become their seeds in the next round. Rounds repeat until no tile
+sends a seed on (a receiving tile whose seeds all land on matched pixels returns at once,
+without reading any image), or until ``max_rounds``, which is reported.
+
+Each task reads its base window and the distorted window the polynomial says it needs
+straight from the Zarr stores; memory per task depends on the tile size only.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import dask
+import dask.array as da
+import numpy as np
+import zarr
+
+from ..kernels.alsc import FIELDS, AlscOptions, gradients
+from ..kernels.polynomial import PolyMap
+from ..match.grow import NFIELDS, UNVISITED, grow_window
+from ..match.tiepoints import TiePoints
+from ..scene import WindowReader
+from ..tiles import Tile, TileGrid
+from .correspond import distorted_window
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DenseOptions:
+    """Options of the dense stage.
+
+    alsc : least-squares matching options. The default template is 51 x 7 pixels: long along
+        the scan line, where the distortion is smooth, and short across it, where roll and
+        pitch change from line to line (a square template of the same area averages the
+        line-to-line turbulence and biases the match by 0.1-0.3 px; see the issue notes).
+    halo : width (px) of the band around a tile in which it may grow into its neighbours.
+    step : lattice spacing of the matches (1 = every pixel).
+    neighbours : 4 or 8.
+    max_tries : attempts per pixel from different neighbours within one task.
+    max_rounds : limit of halo-exchange rounds.
+    margin : extra distorted pixels read around the polynomial's prediction of a window.
+    """
+
+    alsc: AlscOptions = field(default_factory=lambda: AlscOptions(radius=25, radius_y=3, max_shift=0.5, max_sigma=0.1, tol=2e-4, max_iter=30))
+    halo: int = 4
+    step: int = 1
+    neighbours: int = 4
+    max_tries: int = 2
+    max_rounds: int = 12
+    margin: int = 24
+
+
+@dataclass(frozen=True)
+class DenseResult:
+    """Where the state is, how many rounds ran, and the matches made per round."""
+
+    store: str
+    rounds: int
+    converged: bool
+    new_per_round: list[int]
+
+
+def create_state(path: str, shape: tuple[int, int], tile: int) -> None:
+    """Empty state store: ``fields`` (12, H, W) float32 NaN and ``code`` (H, W) int8 -1."""
+    g = zarr.open_group(path, mode="w", zarr_format=3)
+    g.create_array("fields", shape=(NFIELDS, *shape), chunks=(NFIELDS, tile, tile), dtype="float32", fill_value=np.nan)
+    g.create_array("code", shape=shape, chunks=(tile, tile), dtype="int8", fill_value=UNVISITED)
+
+
+def seeds_from_tiepoints(tp: TiePoints, mapping: PolyMap) -> np.ndarray:
+    """Seed rows ``(row, col, x, y, a11, a12, a21, a22, offset, gain)`` in global frames.
+
+    The affine starts from the polynomial's Jacobian, the radiometry from identity.
+    """
+    tp = tp.select(tp.inlier)
+    jac = mapping.jacobian(tp.base_x, tp.base_y)
+    n = len(tp)
+    return np.column_stack([
+        tp.base_y, tp.base_x, tp.dist_x, tp.dist_y,
+        jac[:, 0, 0], jac[:, 0, 1], jac[:, 1, 0], jac[:, 1, 1], np.zeros(n), np.ones(n),
+    ])
+
+
+def _route(seeds: np.ndarray, grid: TileGrid, exclude: str | None = None) -> dict[str, np.ndarray]:
+    """Hand seeds to the tiles whose core holds them."""
+    out: dict[str, np.ndarray] = {}
+    if seeds.size == 0:
+        return out
+    for tile in grid:
+        if tile.key == exclude:
+            continue
+        m = tile.contains(seeds[:, 1], seeds[:, 0])
+        if m.any():
+            out[tile.key] = seeds[m]
+    return out
+
+
+def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, dist_reader: WindowReader,
+               band: int, dist_band: int, state: str, mapping: PolyMap, opts: DenseOptions):
+    h, w = shape
+    g = zarr.open_group(state, mode="r+")
+    core_code = g["code"][tile.row0 : tile.row1, tile.col0 : tile.col1]
+    rows = seeds[:, 0].astype(np.int64) - tile.row0
+    cols = seeds[:, 1].astype(np.int64) - tile.col0
+    incore = (rows >= 0) & (rows < core_code.shape[0]) & (cols >= 0) & (cols < core_code.shape[1])
+    useful = ~incore.copy()
+    useful[incore] = core_code[rows[incore], cols[incore]] != 0
+    if not useful.any():
+        return 0, np.empty((0, 10))
+    # growth region (global), and the base window around it with the template margin
+    rr0, rr1, rc0, rc1 = tile.window(opts.halo)
+    rr0, rr1, rc0, rc1 = max(rr0, 0), min(rr1, h), max(rc0, 0), min(rc1, w)
+    pad = max(opts.alsc.radius, opts.alsc.ry) + 2
+    wr0, wc0 = rr0 - pad, rc0 - pad
+    base = base_reader.read(wr0, rr1 + pad, wc0, rc1 + pad)[band]
+    dwin = distorted_window(Tile(0, 0, rr0, rr1, rc0, rc1), mapping, opts.margin + 2 * max(opts.alsc.radius, opts.alsc.ry))
+    dr0, dc0 = dwin[0], dwin[2]
+    dist = dist_reader.read(*dwin)[dist_band]
+    grad = gradients(dist)
+    # window state: the core's earlier matches, nothing in the halo
+    params = np.full((*base.shape, NFIELDS), np.nan)
+    code = np.full(base.shape, UNVISITED, dtype=np.int8)
+    cr, cc = tile.row0 - wr0, tile.col0 - wc0
+    csl = (slice(cr, cr + tile.row1 - tile.row0), slice(cc, cc + tile.col1 - tile.col0))
+    core_fields = g["fields"][:, tile.row0 : tile.row1, tile.col0 : tile.col1].astype(np.float64)
+    ys, xs = np.mgrid[tile.row0 : tile.row1, tile.col0 : tile.col1]
+    core_fields[0] += xs - dc0  # stored as displacement, used as distorted-window position
+    core_fields[1] += ys - dr0
+    params[csl] = np.moveaxis(core_fields, 0, -1)
+    code[csl] = core_code
+    local = seeds[useful].copy()
+    local[:, 0] -= wr0
+    local[:, 1] -= wc0
+    local[:, 2] -= dc0
+    local[:, 3] -= dr0
+    region = (rr0 - wr0, rr1 - wr0, rc0 - wc0, rc1 - wc0)
+    new = grow_window(base, dist, grad, local, params, code, region, options=opts.alsc, step=opts.step,
+                      lattice_origin=(-wr0 % opts.step, -wc0 % opts.step), neighbours=opts.neighbours,
+                      max_tries=opts.max_tries)
+    if new == 0:
+        return 0, np.empty((0, 10))
+    out = np.moveaxis(params[csl], -1, 0).copy()
+    out[0] -= xs - dc0
+    out[1] -= ys - dr0
+    g["fields"][:, tile.row0 : tile.row1, tile.col0 : tile.col1] = out.astype(np.float32)
+    g["code"][tile.row0 : tile.row1, tile.col0 : tile.col1] = code[csl]
+    # matches made in the halo are the neighbours' seeds for the next round
+    halo = code == 0
+    halo[csl] = False
+    hr, hc = np.nonzero(halo)
+    p = params[hr, hc]
+    outgoing = np.column_stack([hr + wr0, hc + wc0, p[:, 0] + dc0, p[:, 1] + dr0, p[:, 2:8]])
+    return new, outgoing
+
+
+def grow_tiles(
+    base_reader: WindowReader,
+    dist_reader: WindowReader,
+    grid: TileGrid,
+    seeds: np.ndarray,
+    mapping: PolyMap,
+    state: str,
+    *,
+    band: int = 0,
+    dist_band: int = 0,
+    opts: DenseOptions = DenseOptions(),
+) -> DenseResult:
+    """Run the halo-exchange rounds; the matches end up in the ``state`` store."""
+    shape = (grid.height, grid.width)
+    create_state(state, shape, grid.rows[0])
+    tiles = {t.key: t for t in grid}
+    pending = _route(seeds, grid)
+    per_round: list[int] = []
+    for rnd in range(opts.max_rounds):
+        if not pending:
+            return DenseResult(state, rnd, True, per_round)
+        keys = sorted(pending)
+        tasks = [
+            dask.delayed(_grow_task, pure=False, name=f"grow-{k}-r{rnd}-{dask.base.tokenize(state)}")(
+                tiles[k], pending[k], shape, base_reader, dist_reader, band, dist_band, state, mapping, opts
+            )
+            for k in keys
+        ]
+        results = dask.compute(*tasks)
+        per_round.append(int(sum(r[0] for r in results)))
+        log.info("dense round %d: %d tiles, %d new matches", rnd, len(keys), per_round[-1])
+        nxt: dict[str, list[np.ndarray]] = {}
+        for k, (_, outgoing) in zip(keys, results):
+            for dest, s in _route(outgoing, grid, exclude=k).items():
+                nxt.setdefault(dest, []).append(s)
+        pending = {k: np.concatenate(v) for k, v in nxt.items()}
+    return DenseResult(state, opts.max_rounds, not pending, per_round)
+
+
+def state_arrays(state: str, tile: int) -> dict[str, da.Array]:
+    """The state store as dask arrays: every ALSC field (``x``/``y`` as ``dx``/``dy``) and ``code``."""
+    g = zarr.open_group(state, mode="r")
+    fields = da.from_zarr(g["fields"], chunks=(NFIELDS, tile, tile))
+    out = {("dx" if n == "x" else "dy" if n == "y" else n): fields[i] for i, n in enumerate(FIELDS)}
+    out["code"] = da.from_zarr(g["code"], chunks=(tile, tile))
+    return out
+
+
+def _postfilter_block(block: np.ndarray, options) -> np.ndarray:
+    from ..quality.postfilter import postfilter
+
+    dx, dy, status = postfilter(block[0], block[1], block[2].astype(np.uint8), options=options)
+    return np.stack([dx, dy, status.astype(np.float32)])
+
+
+def dense_field(state: str, tile: int, fallback: tuple[da.Array, da.Array], postfilter_options) -> dict[str, da.Array]:
+    """Final displacement and quality arrays from the state store (lazy).
+
+    Matched pixels go through the scan-line post-filter (blunders removed, short holes
+    filled along rows, every filled pixel flagged); pixels left without a match take the
+    polynomial's displacement (``fallback``) and keep their flag.
+    """
+    from ..quality.postfilter import halo
+    from ..status import Status
+
+    st = state_arrays(state, tile)
+    matched = st["code"] == 0
+    status = da.where(matched, np.float32(Status.MATCHED), np.float32(Status.NO_TEXTURE))
+    stack = da.stack([da.where(matched, st["dx"], np.nan), da.where(matched, st["dy"], np.nan), status]).astype(np.float32)
+    stack = stack.rechunk((3, tile, tile))
+    filtered = stack.map_overlap(
+        _postfilter_block, depth={0: 0, 1: 0, 2: halo(postfilter_options)}, boundary="none",
+        dtype=np.float32, options=postfilter_options,
+    )
+    dx, dy, status = filtered[0], filtered[1], filtered[2].astype(np.uint8)
+    good = (status == Status.MATCHED) | (status == Status.FILLED)
+    return {
+        "dx": da.where(good, dx, fallback[0]).astype(np.float32),
+        "dy": da.where(good, dy, fallback[1]).astype(np.float32),
+        "status": status,
+        "sigma_x": da.where(status == Status.MATCHED, st["sigma_x"], np.nan).astype(np.float32),
+        "sigma_y": da.where(status == Status.MATCHED, st["sigma_y"], np.nan).astype(np.float32),
+        "correlation": da.where(status == Status.MATCHED, st["rho"], np.nan).astype(np.float32),
+    }

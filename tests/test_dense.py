@@ -1,0 +1,105 @@
+"""Dense registration against per-pixel truth, on a real LocalCluster with Zarr on disk.
+
+Real single-band images warped by affine + quadratic (up to 15 px) + scan-line turbulence
+(1-3 px, changing over tens of lines), 2 % noise, gain 0.75-1.25 and an offset.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+from pairs import real_pair
+
+from geocoder import Status, register
+
+pytestmark = [pytest.mark.cluster, pytest.mark.data]
+
+
+def textured_overlap(pair, *, rx=25, ry=3, noise=0.02, precision=0.1, margin=2):
+    """Base pixels where a match of the required precision is possible at all.
+
+    The template (``2 rx + 1`` by ``2 ry + 1``) must lie inside both images, and the
+    Cramer-Rao bound of its shift must be below ``precision``: with white noise of
+    ``sigma_n`` in both images the shift covariance is ``2 sigma_n^2 N^-1``
+    (``N = sum grad grad^T`` over the template), so the smallest eigenvalue of N must reach
+    ``2 sigma_n^2 / precision^2``. N is taken from the noisy base with the expected noise
+    part of the gradients (``sigma_n^2 / 2`` per pixel for central differences) removed.
+    """
+    import scipy.ndimage as ndi
+
+    base = pair.base[0].astype(np.float64)
+    lo, hi = np.nanpercentile(base, [1, 99])
+    sn = noise * (hi - lo)
+    h, w = pair.dx.shape
+    hd, wd = pair.distorted.shape[1:]
+    ys, xs = np.mgrid[0:h, 0:w]
+    px, py = xs + pair.dx, ys + pair.dy
+    inside = (px >= rx + margin) & (px < wd - rx - margin) & (py >= ry + margin) & (py < hd - ry - margin)
+    inside &= (xs >= rx + margin) & (xs < w - rx - margin) & (ys >= ry + margin) & (ys < h - ry - margin)
+    gy, gx = np.gradient(base)
+    size = (2 * ry + 1, 2 * rx + 1)
+    n = size[0] * size[1]
+    sxx = ndi.uniform_filter(gx * gx, size) * n - n * sn**2 / 2
+    syy = ndi.uniform_filter(gy * gy, size) * n - n * sn**2 / 2
+    sxy = ndi.uniform_filter(gx * gy, size) * n
+    lam_min = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)
+    return inside & (lam_min >= 2 * sn**2 / precision**2)
+
+
+def dense_figures(ds, pair):
+    st = ds.status.values
+    ex, ey = ds.dx.values - pair.dx, ds.dy.values - pair.dy
+    err = np.hypot(ex, ey)
+    m = st == Status.MATCHED
+    good = m | (st == Status.FILLED)
+    tex = textured_overlap(pair)
+    ex_m, ey_m = ex[m], ey[m]
+    sx, sy = ds.sigma_x.values[m], ds.sigma_y.values[m]
+    return {
+        "rmse": float(np.sqrt(np.mean(err[m] ** 2))),
+        "rmse_x": float(np.sqrt(np.mean(ex_m**2))),
+        "rmse_y": float(np.sqrt(np.mean(ey_m**2))),
+        "textured": float(tex.mean()),
+        "coverage": float((good & tex).sum() / tex.sum()),
+        "unflagged_over_1px": int((err[good] > 1.0).sum()),
+        "calib_x": float(np.sqrt(np.mean(ex[m] ** 2)) / np.sqrt(np.mean(sx**2))),
+        "calib_y": float(np.sqrt(np.mean(ey[m] ** 2)) / np.sqrt(np.mean(sy**2))),
+    }
+
+
+@pytest.mark.parametrize("which", ["aerial"])
+def test_dense_accuracy_coverage_calibration(shared_data, tmp_path, client, which):
+    files = real_pair(shared_data, tmp_path, which=which, size=512, seed=21, turbulence=(1.0, 3.0))
+    out = tmp_path / "dense.zarr"
+    ds = register(files.base, files.distorted, out=out, tile=256, client=client)
+    f = dense_figures(ds, files.pair)
+    print(which, f, json.loads(ds.attrs["summary"])["status_counts"])
+    assert f["rmse"] <= 0.1  # radial: sqrt(mean(ex^2 + ey^2))
+    assert f["coverage"] >= 0.95
+    assert f["unflagged_over_1px"] == 0
+    assert 0.67 <= f["calib_x"] <= 1.5 and 0.67 <= f["calib_y"] <= 1.5
+    # the polynomial alone cannot follow the turbulence: the dense stage is what adds it
+    poly = register(files.base, files.distorted, tile=256, client=client, dense=False)
+    inside = poly.status.values != Status.OUTSIDE
+    poly_rmse = np.sqrt(np.mean(((poly.dx.values - files.pair.dx) ** 2 + (poly.dy.values - files.pair.dy) ** 2)[inside]))
+    assert poly_rmse > 5 * f["rmse"]
+    # store layout: the quality arrays are there, status codes documented
+    stored = xr.open_zarr(out, consolidated=False)
+    for name in ("dx", "dy", "sigma_x", "sigma_y", "correlation", "status", "registered"):
+        assert name in stored
+    assert set(np.unique(stored.status.values)) <= {int(s) for s in Status}
+
+
+def test_dense_does_not_depend_on_tiling(shared_data, tmp_path, client):
+    files = real_pair(shared_data, tmp_path, which="s2", size=1024, seed=22, turbulence=(1.0, 3.0))
+    runs = {t: register(files.base, files.distorted, tile=t, client=client) for t in (256, 512, 1024)}
+    ref = runs[512]
+    for t in (1024, 256):
+        other = runs[t]
+        same = (other.status.values == ref.status.values).mean()
+        both = (other.status.values == Status.MATCHED) & (ref.status.values == Status.MATCHED)
+        delta = np.hypot(other.dx.values - ref.dx.values, other.dy.values - ref.dy.values)[both]
+        print(t, same, delta.max(), np.percentile(delta, [99, 99.9, 99.99]), (delta > 0.01).sum(), delta.size)
+        assert same >= 0.995
+        assert delta.max() <= 0.01
