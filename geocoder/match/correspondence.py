@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 
 from ..kernels.correlate import correlation, extract_patches, pair_weight, refine_shift, warped_patches
 from ..kernels.interest import InterestPoints
-from ..kernels.polynomial import PolyMap, design
+from ..kernels.polynomial import PolyMap, fit_polymap
 from ..kernels.robust import robust_fit
 from .tiepoints import TiePoints
 
@@ -124,12 +124,10 @@ def correspond(
     shift = robust_fit(np.ones((ii.size, 1)), obs, weight, min_points=opts.min_pairs)
     if shift.reason == "too_few":
         return empty, TileMatchStats(**stats, reason="robust shift failed")
-    cx, cy = base_points.x.mean(), base_points.y.mean()
-    scale = max(np.ptp(base_points.x), np.ptp(base_points.y), 1.0) / 2
-    u, v = (base_points.x[ii] - cx) / scale, (base_points.y[ii] - cy) / scale
-    basis = design(u, v, 1)
-    start = np.vstack([shift.coef, np.zeros((2, 2))])
-    affine = robust_fit(basis, obs, weight, min_points=opts.min_pairs, start=start)
+    start = np.vstack([shift.coef, np.zeros((2, 2))])  # the shift, as an affine
+    local = fit_polymap(base_points.x[ii], base_points.y[ii], obs[:, 0], obs[:, 1], order=1, weights=weight,
+                        min_points=opts.min_pairs, start=start)
+    affine = local.fit_info
     if affine.reason == "too_few":
         return empty, TileMatchStats(**stats, reason="robust affine failed")
     good = affine.inliers
@@ -142,9 +140,9 @@ def correspond(
         return empty, TileMatchStats(**stats, reason="no pair survived")
     # refine from the paired distorted point; the tile affine's linear part corrects the
     # local geometry of the prediction
-    lin = affine.coef[1:].T / scale  # d(correction)/d(x, y)
+    lin = local.jacobian(base_points.x[ii], base_points.y[ii])  # d(correction)/d(x, y)
     tp, refined = _refine(base, base_origin, base_points, ii, dist, dist_origin,
-                          dist_points.x[jj], dist_points.y[jj], jac[ii] + lin[None], weight[good], opts)
+                          dist_points.x[jj], dist_points.y[jj], jac[ii] + lin, weight[good], opts)
     stats["refined"] = refined
     return tp, TileMatchStats(**stats, reason="ok")
 
@@ -195,12 +193,9 @@ def correspond_guided(
     tp, refined = _refine(base, base_origin, base_points, ii, dist, dist_origin, px, py, jac, weight, opts)
     stats.update(candidates=len(base_points), correlated=refined, refined=refined)
     if len(tp) >= opts.min_pairs:
-        cx, cy = tp.base_x.mean(), tp.base_y.mean()
-        scale = max(np.ptp(tp.base_x), np.ptp(tp.base_y), 1.0) / 2
         qx, qy = predict(tp.base_x, tp.base_y)
-        obs = np.stack([tp.dist_x - qx, tp.dist_y - qy], axis=1)
-        fit = robust_fit(design((tp.base_x - cx) / scale, (tp.base_y - cy) / scale, 1), obs, min_points=opts.min_pairs)
-        if fit.reason != "too_few":
-            tp = tp.select(fit.inliers)
+        fit = fit_polymap(tp.base_x, tp.base_y, tp.dist_x - qx, tp.dist_y - qy, order=1, min_points=opts.min_pairs)
+        if fit.fit_info.reason != "too_few":
+            tp = tp.select(fit.fit_info.inliers)
     stats["robust"] = len(tp)
     return tp, TileMatchStats(**stats, reason="ok")
