@@ -21,6 +21,7 @@ import zarr
 from affine import Affine
 
 from .errors import InputError
+from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 
 IMAGE_VAR = "image"
 
@@ -125,26 +126,6 @@ def scene_transform(scene: xr.DataArray) -> Affine | None:
     if not scene.attrs.get("georeferenced"):
         return None
     return scene.rio.transform()
-
-
-def pixel_to_world(transform: Affine, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World coordinates of pixel-centre coordinates ``(x=col, y=row)``.
-
-    GDAL transforms address pixel corners; the centre of pixel (r, c) is at (c + 0.5, r + 0.5)
-    in that frame. This function and :func:`world_to_pixel` are the only places that offset.
-    """
-    x = np.asarray(x, dtype=np.float64) + 0.5
-    y = np.asarray(y, dtype=np.float64) + 0.5
-    t = transform
-    return t.a * x + t.b * y + t.c, t.d * x + t.e * y + t.f
-
-
-def world_to_pixel(transform: Affine, wx: np.ndarray, wy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel-centre coordinates ``(x=col, y=row)`` of world coordinates (inverse of the above)."""
-    inv = ~transform
-    wx = np.asarray(wx, dtype=np.float64)
-    wy = np.asarray(wy, dtype=np.float64)
-    return inv.a * wx + inv.b * wy + inv.c - 0.5, inv.d * wx + inv.e * wy + inv.f - 0.5
 
 
 def commit_store(tmp: str, final: str) -> None:

@@ -75,3 +75,20 @@ def test_ingest_command(shared_data, tmp_path, client):
 
     z = open_scene(out)
     assert z.rio.crs.to_epsg() == 32618 and z.chunks[1][0] == 512 and z.shape == (3, 718, 791)
+
+
+@pytest.mark.data
+def test_simulate_command(shared_data, tmp_path, client):
+    out = tmp_path / "sim.zarr"
+    r = run("simulate", "airborne", "--ortho", shared_data / "baviaanskloof/ngi_rgb_byte_1.tif", "--band", 1,
+            "--out", out, "--seed", 5, "--sensor", "caesar", "--rows", 300, "--tile", 256,
+            "--scheduler", client.scheduler.address)
+    assert r.returncode == 0, r.stderr
+    assert "truth ground_x/ground_y/ground_z" in r.stdout
+    import xarray as xr
+
+    ds = xr.open_zarr(out, consolidated=False)
+    assert ds.image.shape[1] == 300 and {"ground_x", "ground_y", "ground_z", "dem"} <= set(ds.variables)
+    assert ds.attrs["sensor_class"] == "AirborneScanner" and ds.attrs["seed"] == 5
+    r = run("simulate", "satellite", "--ortho", tmp_path / "missing.tif", "--out", tmp_path / "x.zarr")
+    assert r.returncode == 2 and "missing.tif: no such file" in r.stderr
