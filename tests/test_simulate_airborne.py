@@ -351,3 +351,20 @@ def test_validation() -> None:
         AirborneScanner(fl, Attitude.still(10), 10, 100, 0.5, kind="frame")
     with pytest.raises(ValueError):
         FlightLine(0.0, 0.0, 1000.0, 0.0, 0.0, 0.01)
+
+
+def test_von_karman_turbulence_has_the_requested_spectrum() -> None:
+    from geocoder.simulate.airborne import Attitude
+
+    rows = 1 << 15
+    a = Attitude.turbulent(rows, seed=3, roll_sigma=1e-3, pitch_sigma=2e-3, yaw_sigma=5e-4,
+                           spectrum="von-karman", exponent=2.0, correlation_lines=20.0)
+    np.testing.assert_allclose([a.roll.std(), a.pitch.std(), a.yaw.std()], [1e-3, 2e-3, 5e-4], rtol=1e-6)
+    p = np.abs(np.fft.rfft(a.roll)) ** 2
+    f = np.fft.rfftfreq(rows)
+    band = lambda lo, hi: p[(f >= lo) & (f < hi)].mean()  # noqa: E731
+    # above the corner (1/(2 pi 20) = 0.008 cycles/line) the power falls as f^-2: x6 in f -> /36
+    ratio = band(0.05, 0.06) / band(0.3, 0.36)
+    assert 25 < ratio < 50
+    b = Attitude.turbulent(rows, seed=3, roll_sigma=1e-3, pitch_sigma=2e-3, yaw_sigma=5e-4, spectrum="von-karman")
+    np.testing.assert_array_equal(a.roll, b.roll)

@@ -19,7 +19,11 @@ from geocoder.simulate.points import (
     point_weight,
     tie_points,
 )
-from geocoder.simulate.satellite import ecef_to_geodetic, geodetic_to_ecef, landsat_mss_like
+from geocoder.simulate.satellite import (
+    ecef_to_geodetic,
+    geodetic_to_ecef,
+    landsat_mss_like,
+)
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +43,8 @@ def _terrain(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- #
 # footprint geometry helpers (tangent plane at the block centre)
 # --------------------------------------------------------------------------- #
-def _enu(X, Y, Z, lat0=np.deg2rad(58.5), lon0=np.deg2rad(-98.0)):
+def _enu(X, Y, Z, lat0=1.0210176124166828, lon0=-1.710422666954443):
+    """ENU plane at 58.5 N, 98 W (radians in the defaults)."""
     O = np.array(geodetic_to_ecef(lat0, lon0, 0.0))
     e = np.array([-np.sin(lon0), np.cos(lon0), 0.0])
     n = np.array([-np.sin(lat0) * np.cos(lon0), -np.sin(lat0) * np.sin(lon0), np.cos(lat0)])
@@ -148,7 +153,9 @@ def test_perturbation_statistics() -> None:
     assert np.allclose(perturbation(n, sigma=0.0, uniform=0.5, seed=1).std(), np.sqrt(1 / 12), rtol=5e-3)
     assert np.abs(perturbation(n, sigma=0.0, uniform=0.5, seed=1)).max() <= 0.5
     # reproducible
-    np.testing.assert_array_equal(perturbation(10, sigma=1, uniform=1, seed=5), perturbation(10, sigma=1, uniform=1, seed=5))
+    np.testing.assert_array_equal(
+        perturbation(10, sigma=1, uniform=1, seed=5), perturbation(10, sigma=1, uniform=1, seed=5)
+    )
     assert not np.array_equal(perturbation(10, sigma=1, seed=5), perturbation(10, sigma=1, seed=6))
 
 
@@ -174,7 +181,7 @@ def test_control_and_check_grids(block) -> None:
     assert 350 < len(ctrl) < 550 and 350 < len(chk) < 550  # seed: 454 / 453
     # no common points: every check point is >= 10 sqrt(2) km from every control point (in plan)
     lat1, lon1, h1 = ecef_to_geodetic(ctrl.X, ctrl.Y, ctrl.Z)
-    lat2, lon2, h2 = ecef_to_geodetic(chk.X, chk.Y, chk.Z)
+    lat2, lon2, _ = ecef_to_geodetic(chk.X, chk.Y, chk.Z)
     a, b = _enu(*geodetic_to_ecef(lat1, lon1, 0.0)), _enu(*geodetic_to_ecef(lat2, lon2, 0.0))
     dist = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=-1)
     assert dist.min() > 0.99 * 10e3 * np.sqrt(2)
@@ -234,7 +241,7 @@ def test_airborne_grid_and_observe() -> None:
     np.testing.assert_allclose(g.Z, 50.0 + 0.01 * g.X)
     obs = observe(sc, g, seed=None, image_uniform=0.0, image_sigma=0.0)
     assert len(obs) == len(g)
-    r, c = sc.ground_to_image(g.X, g.Y, g.Z)
+    r, _ = sc.ground_to_image(g.X, g.Y, g.Z)
     np.testing.assert_allclose(obs.row, r[np.searchsorted(g.id, obs.point)])
 
 
@@ -270,7 +277,9 @@ def test_tie_points_in_overlaps(block) -> None:
     counts = np.bincount(np.searchsorted(tie.id, obs.point), minlength=len(tie))
     assert counts.min() >= 2
     np.testing.assert_array_equal(tie.sigma[:, :2], np.inf)
-    np.testing.assert_array_equal(tie.id, tie_points(block, per_overlap=8, seed=3, heights=_terrain, id_start=50_000).id)
+    np.testing.assert_array_equal(
+        tie.id, tie_points(block, per_overlap=8, seed=3, heights=_terrain, id_start=50_000).id
+    )
 
 
 # --------------------------------------------------------------------------- #
@@ -313,7 +322,7 @@ def test_edge_configurations(frame, configuration) -> None:
 
 def test_edge_perturbation_along_and_across(frame) -> None:
     n = 20_000
-    g, obs = edge_points(frame, n_pairs=n, seed=4, configuration=10)
+    _, obs = edge_points(frame, n_pairs=n, seed=4, configuration=10)
     dx, dy = obs.col - obs.true_col, obs.row - obs.true_row
     along = dx * np.cos(obs.theta) + dy * np.sin(obs.theta)
     across = -dx * np.sin(obs.theta) + dy * np.cos(obs.theta)
@@ -328,7 +337,7 @@ def test_edge_perturbation_along_and_across(frame) -> None:
 
 def test_edge_grid_sizes(frame) -> None:
     for n in (25, 41, 61, 85, 113, 145):
-        g, obs = edge_points(frame, n_pairs=n, seed=0, configuration=1)
+        g, _ = edge_points(frame, n_pairs=n, seed=0, configuration=1)
         assert len(g) == n
     with pytest.raises(ValueError):
         edge_points(frame, n_pairs=30, seed=0, configuration=1)

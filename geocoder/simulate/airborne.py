@@ -199,8 +199,17 @@ class Attitude:
         yaw_sigma: float,
         drift: tuple[float, float, float] = (0.0, 0.0, 0.0),
         correlation_lines: float = 30.0,
+        spectrum: str = "gaussian",
+        exponent: float = 2.0,
     ) -> Attitude:
         """Seeded turbulent attitude: linear drift plus coloured noise.
+
+        ``spectrum="gaussian"`` (default) smooths white noise with a Gaussian kernel (see
+        below); ``spectrum="von-karman"`` draws each angle with the power spectrum
+        ``(f^2 + f_c^2)^(-exponent / 2)``, ``f_c = 1 / (2 pi correlation_lines)`` cycles per
+        line — flat below the corner and falling as ``f^-exponent`` above it (2 for a
+        first-order, Dryden-like process; 5/3 for Kolmogorov turbulence) — scaled to the
+        given standard deviations.
 
         Each angle is ``drift[i] * row + sigma_i * w_i(row)`` where ``w_i`` is
         white Gaussian noise convolved with a Gaussian kernel of standard
@@ -237,12 +246,26 @@ class Attitude:
         rows = int(rows)
         if correlation_lines <= 0:
             raise ValueError("correlation_lines must be positive")
+        if spectrum not in ("gaussian", "von-karman"):
+            raise ValueError(f"spectrum must be 'gaussian' or 'von-karman', got {spectrum!r}")
         rng = np.random.default_rng(seed)
+        t = np.arange(rows, dtype=np.float64)
+        if spectrum == "von-karman":
+            n = 2 * rows
+            f = np.fft.rfftfreq(n)
+            amp = (f**2 + (1.0 / (2 * np.pi * correlation_lines)) ** 2) ** (-exponent / 4)
+            amp[0] = 0.0
+            out = []
+            for sigma, dr in zip((roll_sigma, pitch_sigma, yaw_sigma), drift):
+                spec = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
+                w = np.fft.irfft(spec, n)[:rows]
+                w = (w - w.mean()) / (w.std() or 1.0)
+                out.append(dr * t + sigma * w)
+            return cls(*out)
         s = correlation_lines / 2.0
         half = int(np.ceil(4 * s))
         k = np.exp(-0.5 * (np.arange(-half, half + 1) / s) ** 2)
         k /= np.sqrt(np.sum(k**2))  # unit variance of the filtered process
-        t = np.arange(rows, dtype=np.float64)
         out = []
         for sigma, dr in zip((roll_sigma, pitch_sigma, yaw_sigma), drift):
             w = rng.standard_normal(rows + 2 * half)

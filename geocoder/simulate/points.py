@@ -45,7 +45,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -73,8 +73,8 @@ __all__ = [
     "tie_points",
 ]
 
-Seed = Union[int, np.random.Generator, None]
-Heights = Union[float, Callable[[np.ndarray, np.ndarray], Any]]
+Seed = int | np.random.Generator | None
+Heights = float | Callable[[np.ndarray, np.ndarray], Any]
 
 ROLES = ("control", "check", "tie")
 KINDS = ("point", "edge")
@@ -133,7 +133,7 @@ class GroundPoints:
     def __post_init__(self) -> None:
         ids = np.asarray(self.id, dtype=np.int64).reshape(-1)
         n = ids.size
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        set_ = lambda k, v: object.__setattr__(self, k, v)
         set_("id", ids)
         for k in ("X", "Y", "Z", "true_X", "true_Y", "true_Z"):
             a = _f64(getattr(self, k)).reshape(-1)
@@ -179,9 +179,7 @@ class GroundPoints:
         -------
         GroundPoints
         """
-        return cls(
-            **{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(cls)}
-        )
+        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(cls)})
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,7 +217,7 @@ class ImageObservations:
     def __post_init__(self) -> None:
         frame = np.asarray(self.frame, dtype=np.int64).reshape(-1)
         m = frame.size
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        set_ = lambda k, v: object.__setattr__(self, k, v)
         set_("frame", frame)
         set_("point", np.asarray(self.point, dtype=np.int64).reshape(-1))
         for k in ("row", "col", "true_row", "true_col", "theta"):
@@ -252,9 +250,7 @@ class ImageObservations:
         -------
         ImageObservations
         """
-        return cls(
-            **{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(cls)}
-        )
+        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(cls)})
 
 
 # --------------------------------------------------------------------------- #
@@ -358,9 +354,7 @@ def perturb_ground(ground: GroundPoints, *, sigma: ArrayLike = 15.0, seed: Seed)
     GroundPoints
     """
     d = perturbation((len(ground), 3), sigma=np.broadcast_to(_f64(sigma), (3,)), seed=seed)
-    return dataclasses.replace(
-        ground, X=ground.true_X + d[:, 0], Y=ground.true_Y + d[:, 1], Z=ground.true_Z + d[:, 2]
-    )
+    return dataclasses.replace(ground, X=ground.true_X + d[:, 0], Y=ground.true_Y + d[:, 1], Z=ground.true_Z + d[:, 2])
 
 
 # --------------------------------------------------------------------------- #
@@ -588,12 +582,12 @@ def observe(
 
 def _grid_fractions(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Regular grid of ``n = k^2`` or quincunx of ``n = k^2 + (k-1)^2`` points, fractions of the frame."""
-    k = int(round(np.sqrt(n)))
+    k = round(np.sqrt(n))
     if k * k == n:
         f = (np.arange(k) + 0.5) / k
         a, b = np.meshgrid(f, f, indexing="ij")
         return a.ravel(), b.ravel()
-    k = int(round((1 + np.sqrt(2 * n - 1)) / 2))
+    k = round((1 + np.sqrt(2 * n - 1)) / 2)
     if k >= 2 and k * k + (k - 1) ** 2 == n:
         a1, b1 = _grid_fractions(k * k)
         g = np.arange(1, k) / k
@@ -813,8 +807,10 @@ def block_of_strips(
     """
     if not (0 <= sidelap < 1 and 0 <= overlap < 1):
         raise ValueError("sidelap and overlap must be in [0, 1)")
-    geom = dict(rows=rows, cols=cols, altitude=altitude, swath=swath, line_spacing=line_spacing, kind=kind,
-                descending=descending, position_sigma=position_sigma, attitude_sigma=attitude_sigma)  # fmt: skip
+    geom: dict[str, Any] = {
+        "rows": rows, "cols": cols, "altitude": altitude, "swath": swath, "line_spacing": line_spacing,
+        "kind": kind, "descending": descending, "position_sigma": position_sigma, "attitude_sigma": attitude_sigma,
+    }  # fmt: skip
     centre = landsat_mss_like(lat0=lat0, lon0=lon0, **geom)
     rng = np.random.default_rng(seed)
     half = max(rows * centre.orbit.line_time / 2.0, 1e-3)
