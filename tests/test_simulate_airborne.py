@@ -366,5 +366,6 @@ def test_von_karman_turbulence_has_the_requested_spectrum() -> None:
     # above the corner (1/(2 pi 20) = 0.008 cycles/line) the power falls as f^-2: x6 in f -> /36
     ratio = band(0.05, 0.06) / band(0.3, 0.36)
     assert 25 < ratio < 50
-    b = Attitude.turbulent(rows, seed=3, roll_sigma=1e-3, pitch_sigma=2e-3, yaw_sigma=5e-4, spectrum="von-karman")
+    b = Attitude.turbulent(rows, seed=3, roll_sigma=1e-3, pitch_sigma=2e-3, yaw_sigma=5e-4,
+                           spectrum="von-karman", exponent=2.0, correlation_lines=20.0)
     np.testing.assert_array_equal(a.roll, b.roll)
