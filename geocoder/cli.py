@@ -129,7 +129,7 @@ def demo(size, seed, out, tile, scheduler):
 
 @main.command()
 @click.argument("kind", type=click.Choice(["airborne", "satellite"]))
-@click.option("--ortho", required=True, help="Georeferenced orthoimage (projected CRS) used as the ground texture.")
+@click.option("--ortho", required=True, help="Georeferenced orthoimage (projected CRS) used as the ground texture, or 'synthetic'.")
 @click.option("--dem", default=None, help="DEM in the ortho's CRS (default: a fractal surface of --relief metres).")
 @click.option("--out", required=True, help="Output Zarr store (written atomically).")
 @click.option("--seed", default=0, show_default=True, help="Seed of the DEM, the attitude/orbit deviations and the noise.")

@@ -92,3 +92,15 @@ def test_simulate_command(shared_data, tmp_path, client):
     assert ds.attrs["sensor_class"] == "AirborneScanner" and ds.attrs["seed"] == 5
     r = run("simulate", "satellite", "--ortho", tmp_path / "missing.tif", "--out", tmp_path / "x.zarr")
     assert r.returncode == 2 and "missing.tif: no such file" in r.stderr
+
+
+def test_simulate_synthetic_ortho(tmp_path, client):
+    out = tmp_path / "syn.zarr"
+    r = run("simulate", "satellite", "--ortho", "synthetic", "--out", out, "--seed", 1, "--pixel", 8,
+            "--scheduler", client.scheduler.address)
+    assert r.returncode == 0, r.stderr
+    import xarray as xr
+
+    ds = xr.open_zarr(out, consolidated=False)
+    assert ds.attrs["sensor_class"] == "LineScanner" and float(ds.image.isnull().mean()) < 0.05
+    assert leftovers(tmp_path) == []

@@ -197,7 +197,8 @@ def simulate(
     ----------
     kind : {"airborne", "satellite"}
     ortho : path
-        Georeferenced orthoimage (projected CRS, metres) used as the ground texture.
+        Georeferenced orthoimage (projected CRS, metres) used as the ground texture, or
+        ``"synthetic"`` for a procedural 2048 x 2048 scene at 2 m made on the fly.
     out : path
         Zarr store to write (atomically).
     dem : path, optional
@@ -221,6 +222,33 @@ def simulate(
     """
     if kind not in ("airborne", "satellite"):
         raise ValueError(f"kind must be 'airborne' or 'satellite', got {kind!r}")
+    out = os.fspath(out)
+    work = tempfile.mkdtemp(prefix=".geocoder-work-", dir=os.path.dirname(os.path.abspath(out)))
+    try:
+        if os.fspath(ortho) == SYNTHETIC:
+            ortho = _synthetic_ortho(work, seed)
+        return _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, turbulence_deg, pixel,
+                         relief, radiometry, resampling, tile, client, scheduler)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+SYNTHETIC = "synthetic"
+
+
+def _synthetic_ortho(work: str, seed: int) -> str:
+    """A procedural 2048 x 2048 ortho at 2 m in UTM 33N (no files needed)."""
+    from ..scene import write_geotiff
+    from ..simulate.texture import synthetic_ortho
+
+    path = os.path.join(work, "synthetic-ortho.tif")
+    write_geotiff(path, synthetic_ortho((2048, 2048), seed=seed), transform=Affine(2.0, 0, 500000.0, 0, -2.0, 5800000.0),
+                  crs="EPSG:32633")
+    return path
+
+
+def _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, turbulence_deg, pixel, relief,
+              radiometry, resampling, tile, client, scheduler) -> xr.Dataset:
     scene = open_scene(ortho, chunks=tile, bands=[band] if band else None)
     if not scene.attrs.get("georeferenced") or not scene.rio.crs.is_projected:
         from ..errors import InputError
@@ -243,8 +271,6 @@ def simulate(
         sensor_model = satellite_over(scene, pixel=pixel, seed=seed)
         to_crs = EcefToCrs(scene.rio.crs.to_wkt())
         terrain_fn = GeodeticTerrain(terrain, to_crs)
-    out = os.fspath(out)
-    work = tempfile.mkdtemp(prefix=".geocoder-work-", dir=os.path.dirname(os.path.abspath(out)))
     tmp = temporary_path(out)
     try:
         with dask_client(client, scheduler) as c:
@@ -281,8 +307,6 @@ def simulate(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     return xr.open_zarr(out, consolidated=False)
 
 
