@@ -1,4 +1,4 @@
-"""Command line: ``geocoder register | ingest | simulate | demo``.
+"""Command line: ``geocoder register | ingest | simulate | adjust | demo``.
 
 Every command calls the same library functions a notebook would; ``--scheduler`` (default
 ``DASK_SCHEDULER_ADDRESS``) chooses a running Dask cluster, otherwise a local one is started.
@@ -110,6 +110,26 @@ def ingest(src, out, tile, nodata, scheduler):
     with dask_client(scheduler=scheduler) as c:
         scene = run(src, out, tile=tile, nodata=nodata, client=c)
     click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {tile}")
+
+
+@main.command()
+@click.option("--frames", "frames_path", required=True, help="Frames JSON (sensor model and start parameters per frame).")
+@click.option("--points", "points_path", required=True, help="Ground points CSV (id,role,X,Y,Z,sigma_X,sigma_Y,sigma_Z).")
+@click.option("--observations", "obs_path", required=True, help="Image observations CSV (frame,point,x,y,w_xx,w_xy,w_yy).")
+@click.option("--out", required=True, help="Output directory.")
+@click.option("--robust", is_flag=True, help="Robust re-weighting (eq 20b, then 22b).")
+@click.option("--snooping", is_flag=True, help="Data snooping with redundancy numbers.")
+@_friendly
+def adjust(frames_path, points_path, obs_path, out, robust, snooping):
+    """Block adjustment (rectification with one frame) from plain files."""
+    from .adjust.run import adjust_files
+
+    s = adjust_files(frames_path, points_path, obs_path, out, robust=robust, snooping=snooping)
+    click.echo(f"{s['frames']} frame(s), {s['points']} points, {s['observations']} observations, "
+               f"{s['rejected']} rejected; sigma0 {s['sigma0']:.3f}; {s['iterations']} iterations")
+    if s["check_rms_total_m"] is not None:
+        click.echo(f"check points: {s['check_rms_total_m']:.2f} m RMS")
+    click.echo(f"wrote {out}/frames.json, points.csv, residuals.csv, report.md")
 
 
 @main.command()

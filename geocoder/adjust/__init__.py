@@ -1,0 +1,1 @@
+"""Least-squares block adjustment (pure numpy / scipy.sparse)."""

@@ -1,0 +1,67 @@
+"""The seed's rectification experiments, small: Table 3 and Table 5 trends, blunders, files + CLI."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from geocoder.adjust.experiments import block_setup, block_table, blunder_case, collinearity_frame, single_frame_table
+from geocoder.adjust.io import scanner_to_dict, write_observations, write_points
+
+
+def test_table3_collinearity_recovers_polynomial_keeps_systematic_error():
+    rows = {r["control"]: r for r in single_frame_table(perfect=True, counts=(25, 81))}
+    for r in rows.values():
+        assert r["collinearity"] < 1.0  # seed: 0.5 m
+        assert r["polynomial"] > 5.0  # seed: about 10 m, the 2-D model ignores relief
+
+
+def test_table5_block_beats_single_frames_where_control_is_scarce():
+    scarce, full = block_table(size=0.3, totals=(12, None), tie_per_overlap=6)
+    single = np.nanmean(scarce["single_rms"])
+    assert scarce["converged"] and scarce["ties"] > 100
+    assert scarce["block_total"] < 0.95 * single
+    assert full["ties"] == 0
+    assert full["block_total"] == pytest.approx(np.nanmean(full["single_rms"]), rel=0.03)  # no ties: the same thing
+    assert full["block_total"] < scarce["block_total"]
+
+
+def test_blunders_found_and_removed():
+    r = blunder_case(size=0.3, total=12, tie_per_overlap=5)
+    assert r["found"] >= 0.95 * r["blunders"]  # a 5 px blunder on a weak point can hide
+    assert r["false_alarms"] < 0.05 * r["tie_observations"]
+    assert r["contaminated_rms"] > 1.5 * r["clean_rms"]
+    assert r["robust_rms"] == pytest.approx(r["clean_rms"], rel=0.05)
+
+
+def test_adjust_command_from_files(tmp_path):
+    truths, grid, check, ties, obs = block_setup(size=0.3, strips=2, frames=1, tie_per_overlap=5)
+    from geocoder.simulate.points import GroundPoints
+
+    control = grid
+    ids_in = np.concatenate([control.id, check.id])
+    pts = GroundPoints.concatenate([control, check])
+    write_points(tmp_path / "points.csv", pts)
+    write_observations(tmp_path / "obs.csv", obs.subset(np.isin(obs.point, ids_in)))
+    frames = []
+    for t in truths:
+        f = collinearity_frame(t)
+        frames.append({"model": "linescanner", "scanner": scanner_to_dict(f.model.template), "free": f.model.free.tolist(),
+                       "prior_sigma": (1 / np.sqrt(np.diag(f.prior_weight))).tolist()})
+    (tmp_path / "frames.json").write_text(json.dumps({"frames": frames}))
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "geocoder.cli", "adjust", "--frames", tmp_path / "frames.json",
+                        "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv", "--out", out],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["converged"] and 0.7 < s["sigma0"] < 1.5
+    assert 30 < s["check_rms_total_m"] < 120  # check points' own 15 m + 0.58 px noise dominate
+    for name in ("frames.json", "points.csv", "residuals.csv", "report.md", "residuals_frame0.svg"):
+        assert (out / name).exists()
+    bad = subprocess.run([sys.executable, "-m", "geocoder.cli", "adjust", "--frames", tmp_path / "nope.json",
+                          "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv", "--out", out],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "nope.json: no such file" in bad.stderr
