@@ -34,6 +34,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 try:  # optional, faster and symmetric
     from sksparse.cholmod import cholesky as _cholmod_cholesky  # type: ignore[import-not-found]
@@ -53,6 +54,7 @@ __all__ = [
 _RANK_RTOL = 1e-9  # eigenvalues below this fraction of the largest count as zero (weight ranks)
 _POINT_RTOL = 1e-10  # a 3x3 point block whose eigenvalue ratio is below this is singular
 _GEMM_BUDGET = 1 << 16  # observation pairs gathered at once in the assembly of S
+_BANDED_MAX_ENTRIES = 1 << 26  # banded Cholesky when (bandwidth + 1) * unknowns is below this (512 MB)
 
 
 class SensorModel(Protocol):
@@ -261,7 +263,7 @@ class AdjustResult:
     time_per_iteration : list of float
         Wall time in seconds of every Gauss-Newton step (all rounds).
     solver : str
-        ``"cholmod"`` or ``"splu"``.
+        ``"cholmod"``, ``"banded-cholesky"`` or ``"splu"``.
     point_valid : ndarray of bool, shape (P,)
         False for points whose 3x3 normal block is singular (e.g. a tie point seen once, no
         prior); they are left out of the adjustment together with their observations.
@@ -473,9 +475,22 @@ class _Lin:
     jg: np.ndarray  # (M, 2, 3)
 
 
-def _linearise(lay: _Layout, models: list[SensorModel], params: list[np.ndarray], ground: np.ndarray) -> _Lin:
+def _residuals(lay: _Layout, models: list[SensorModel], params: list[np.ndarray], ground: np.ndarray) -> np.ndarray:
+    """Observed minus projected image coordinates (M, 2), one model call per frame."""
+    res = np.zeros((lay.obs_frame.size, 2))
+    for f in range(lay.n_frames):
+        s0, s1 = lay.frame_start[f], lay.frame_start[f + 1]
+        if s1 > s0:
+            res[s0:s1] = lay.obs_xy[s0:s1] - models[f].project(params[f], ground[lay.obs_point[s0:s1]])
+    return res
+
+
+def _linearise(
+    lay: _Layout, models: list[SensorModel], params: list[np.ndarray], ground: np.ndarray, res: np.ndarray | None = None
+) -> _Lin:
     m = lay.obs_frame.size
-    res = np.empty((m, 2))
+    if res is None:
+        res = _residuals(lay, models, params, ground)
     jp = np.zeros((m, 2, lay.nmax))
     jg = np.empty((m, 2, 3))
     for f in range(lay.n_frames):  # one model call per frame, vectorised over its observations
@@ -483,7 +498,6 @@ def _linearise(lay: _Layout, models: list[SensorModel], params: list[np.ndarray]
         if s1 == s0:
             continue
         g = ground[lay.obs_point[s0:s1]]
-        res[s0:s1] = lay.obs_xy[s0:s1] - models[f].project(params[f], g)
         a, b = models[f].jacobians(params[f], g)
         fi = lay.free[f]
         jp[s0:s1, :, : fi.size] = np.asarray(a)[:, :, fi]
@@ -491,9 +505,9 @@ def _linearise(lay: _Layout, models: list[SensorModel], params: list[np.ndarray]
     return _Lin(res, jp, jg)
 
 
-def _cost(lay: _Layout, lin: _Lin, w: np.ndarray, params: list[np.ndarray], ground: np.ndarray, valid: np.ndarray) -> float:
+def _cost(lay: _Layout, res: np.ndarray, w: np.ndarray, params: list[np.ndarray], ground: np.ndarray, valid: np.ndarray) -> float:
     """Weighted square sum of observation and pseudo-observation residuals."""
-    c = float(np.einsum("mi,mij,mj->", lin.res, w, lin.res))
+    c = float(np.einsum("mi,mij,mj->", res, w, res))
     for f in range(lay.n_frames):
         if lay.prior_w[f] is not None:
             d = (lay.prior_val[f] - params[f])[lay.free[f]]
@@ -515,6 +529,7 @@ class _Normals:
     s: sp.csc_matrix
     r: np.ndarray
     ngg_diag: np.ndarray  # (P, 3)
+    frame_pairs: np.ndarray  # (K, 2) frames coupled through points
 
 
 def _normals(lay: _Layout, lin: _Lin, factor: np.ndarray, params: list[np.ndarray], ground: np.ndarray) -> _Normals:
@@ -543,9 +558,9 @@ def _normals(lay: _Layout, lin: _Lin, factor: np.ndarray, params: list[np.ndarra
     for f in range(nf):  # small GEMMs, O(frames)
         s0, s1 = lay.frame_start[f], lay.frame_start[f + 1]
         if s1 > s0:
-            jpf = lin.jp[s0:s1]
-            nff[f] = np.tensordot(jpf, np.matmul(w[s0:s1], jpf), axes=([0, 1], [0, 1]))
-            tp[f] = np.tensordot(jpf, wres[s0:s1], axes=([0, 1], [0, 1]))
+            jpf = lin.jp[s0:s1].reshape(-1, nmax)  # (2K, n), contiguous
+            nff[f] = jpf.T @ np.matmul(w[s0:s1], lin.jp[s0:s1]).reshape(-1, nmax)
+            tp[f] = jpf.T @ wres[s0:s1].ravel()
         if lay.prior_w[f] is not None:
             k = lay.free[f].size
             nff[f, :k, :k] += lay.prior_w[f]
@@ -581,22 +596,61 @@ def _normals(lay: _Layout, lin: _Lin, factor: np.ndarray, params: list[np.ndarra
     vals = np.concatenate([nff.ravel(), -u.ravel(), -u.transpose(0, 2, 1).ravel()])
     keep = (rows >= 0) & (cols >= 0)
     nu = lay.n_unknowns
-    s = sp.coo_matrix((vals[keep], (rows[keep], cols[keep])), shape=(nu, nu)).tocsc()
+    rows, cols, vals = rows[keep].astype(np.int32), cols[keep].astype(np.int32), vals[keep]
+    s = sp.coo_matrix((vals, (rows, cols)), shape=(nu, nu)).tocsc()
+    del rows, cols, vals
     s.sum_duplicates()
     r = np.zeros(nu)
     sel = lay.idx >= 0
     r[lay.idx[sel]] = tp[sel]
-    return _Normals(w, used, valid, ninv, ct, et, tg, s, r, np.diagonal(ngg, axis1=1, axis2=2).copy())
+    pairs = np.c_[ka, kb]
+    return _Normals(w, used, valid, ninv, ct, et, tg, s, r, np.diagonal(ngg, axis1=1, axis2=2).copy(), pairs)
 
 
-def _solve(s: sp.csc_matrix, r: np.ndarray) -> tuple[np.ndarray, str]:
-    if r.size == 0:
+def _frame_order(lay: _Layout, pairs: np.ndarray) -> tuple[np.ndarray, int]:
+    """Unknown permutation from a reverse Cuthill-McKee ordering of the frame graph, and its bandwidth."""
+    nf = lay.n_frames
+    adj = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(nf, nf)).tocsr()
+    order = reverse_cuthill_mckee((adj + adj.T).tocsr(), symmetric_mode=True)
+    perm = lay.idx[order].ravel()
+    perm = perm[perm >= 0]
+    pos = np.empty(lay.n_frames, dtype=np.int64)
+    pos[order] = np.arange(nf)
+    # bandwidth in unknowns: frames coupled at distance d in the order -> < (d + 1) * nmax
+    nfree = (lay.idx >= 0).sum(axis=1)
+    first = np.zeros(nf + 1, dtype=np.int64)
+    first[1:] = np.cumsum(nfree[order])
+    pa, pb = pos[pairs[:, 0]], pos[pairs[:, 1]]
+    lo, hi = np.minimum(pa, pb), np.maximum(pa, pb)
+    bw = int(np.max(first[hi + 1] - 1 - first[lo], initial=int(nfree.max(initial=1)) - 1))
+    return perm, bw
+
+
+def _solve(s: sp.csc_matrix, r: np.ndarray, order: tuple[np.ndarray, int] | None = None) -> tuple[np.ndarray, str]:
+    """Solve the reduced normal equations: CHOLMOD, banded Cholesky (RCM frame order) or SuperLU."""
+    n = r.size
+    if n == 0:
         return r.copy(), "none"
     if _cholmod_cholesky is not None:  # pragma: no cover - optional dependency
         try:
             return _cholmod_cholesky(s)(r), "cholmod"
         except Exception:
             pass
+    if order is not None:
+        perm, bw = order
+        if (bw + 1) * n <= _BANDED_MAX_ENTRIES and bw < n // 2:
+            sp_ = s[perm][:, perm].tocoo()
+            up = sp_.row <= sp_.col
+            ab = np.zeros((bw + 1, n))
+            ab[bw + sp_.row[up] - sp_.col[up], sp_.col[up]] = sp_.data[up]
+            try:
+                x = scipy.linalg.solveh_banded(ab, r[perm], overwrite_ab=True, check_finite=False)
+            except np.linalg.LinAlgError:
+                pass
+            else:
+                out = np.empty(n)
+                out[perm] = x
+                return out, "banded-cholesky"
     try:
         lu = spla.splu(s, permc_spec="MMD_AT_PLUS_A")
     except RuntimeError as exc:
@@ -628,15 +682,16 @@ def _gauss_newton(
 ) -> _State:
     lin = _linearise(lay, models, params, ground)
     nrm = _normals(lay, lin, factor, params, ground)
-    cost = _cost(lay, lin, nrm.w, params, ground, nrm.valid)
+    cost = _cost(lay, lin.res, nrm.w, params, ground, nrm.valid)
     lam = float(opt.damping)
     state = _State(params, ground, lin, nrm)
+    order = _frame_order(lay, nrm.frame_pairs)
     for it in range(opt.max_iter):
         t0 = time.perf_counter()
         s = nrm.s
         if lam > 0:
             s = (s + sp.diags(lam * s.diagonal())).tocsc()
-        dp, state.solver = _solve(s, nrm.r)
+        dp, state.solver = _solve(s, nrm.r, order)
         dpad = np.zeros((lay.n_frames, lay.nmax))
         sel = lay.idx >= 0
         dpad[sel] = dp[lay.idx[sel]]
@@ -648,13 +703,12 @@ def _gauss_newton(
             p[lay.free[f]] += dpad[f, : lay.free[f].size]
             new_params.append(p)
         new_ground = ground + dg
-        new_lin = _linearise(lay, models, new_params, new_ground)
-        new_nrm = _normals(lay, new_lin, factor, new_params, new_ground)
-        new_cost = _cost(lay, new_lin, new_nrm.w, new_params, new_ground, new_nrm.valid)
-        times.append(time.perf_counter() - t0)
+        new_res = _residuals(lay, models, new_params, new_ground)
+        new_cost = _cost(lay, new_res, nrm.w, new_params, new_ground, nrm.valid)
         state.iterations = it + 1
         if lam > 0 and new_cost > cost:
             lam *= 10.0
+            times.append(time.perf_counter() - t0)
             continue
         if lam > 0:
             lam /= 10.0
@@ -663,8 +717,14 @@ def _gauss_newton(
             float(np.max(np.abs(dg) * np.sqrt(np.abs(nrm.ngg_diag)), initial=0.0)),
         )
         small_change = abs(cost - new_cost) <= 1e-14 * max(cost, 1e-300)
-        params, ground, lin, nrm, cost = new_params, new_ground, new_lin, new_nrm, new_cost
-        state = _State(params, ground, lin, nrm, state.iterations, False, state.solver)
+        solver = state.solver
+        del nrm, lin, state  # keep one set of normal equations in memory
+        params, ground = new_params, new_ground
+        lin = _linearise(lay, models, params, ground, new_res)
+        nrm = _normals(lay, lin, factor, params, ground)
+        cost = _cost(lay, lin.res, nrm.w, params, ground, nrm.valid)
+        state = _State(params, ground, lin, nrm, it + 1, False, solver)
+        times.append(time.perf_counter() - t0)
         if step < opt.tol or small_change:
             state.converged = True
             break
@@ -695,7 +755,7 @@ class _Stats:
 
 def _statistics(lay: _Layout, st: _State, *, dense: bool) -> _Stats:
     nrm, lin = st.normals, st.lin
-    omega = _cost(lay, lin, nrm.w, st.params, st.ground, nrm.valid)
+    omega = _cost(lay, lin.res, nrm.w, st.params, st.ground, nrm.valid)
     dof = _redundancy_total(lay, nrm)
     sigma0 = float(np.sqrt(omega / dof)) if dof > 0 else float("nan")
     out = _Stats(sigma0, dof)
@@ -781,7 +841,7 @@ def _robust_scale(lay: _Layout, st: _State, *, trimmed: bool) -> tuple[np.ndarra
     raw = np.sqrt(vwv / rk)
     if trimmed:
         nrm = st.normals
-        omega = _cost(lay, st.lin, lay.obs_weight * nrm.used[:, None, None], st.params, st.ground, nrm.valid)
+        omega = _cost(lay, st.lin.res, lay.obs_weight * nrm.used[:, None, None], st.params, st.ground, nrm.valid)
         dof = _redundancy_total(lay, nrm)
         if dof > 0 and omega > 0:
             return raw, float(np.sqrt(omega / dof))
@@ -822,7 +882,10 @@ def adjust(problem: Problem, options: AdjustOptions | None = None) -> AdjustResu
     * Gauss-Newton (optionally Levenberg-Marquardt damped) on the reduced normal equations
       ``S dp = r``; ``S`` is assembled as a sparse matrix from one ``n x n`` block per pair of
       frames sharing points and factorised with CHOLMOD if scikit-sparse is importable, else
-      SuperLU (``scipy.sparse.linalg.splu``).
+      ordered by a reverse Cuthill-McKee numbering of the frames (seed sec. 2.4: proper
+      numbering makes the reduced system banded) and solved by banded Cholesky
+      (``scipy.linalg.solveh_banded``) when the band fits in memory, else by SuperLU
+      (``scipy.sparse.linalg.splu``).
     * Points with a singular 3x3 normal block (a tie point seen once and without prior, all of
       its observations rejected...) are left out together with their observations
       (``point_valid``).
