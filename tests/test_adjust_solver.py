@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from geocoder.adjust.solver import AdjustOptions, Frame, Problem, adjust, numeric_jacobians
+from geocoder.adjust.solver import (
+    AdjustOptions,
+    Frame,
+    Problem,
+    adjust,
+    numeric_jacobians,
+)
 
 # --------------------------------------------------------------------------------------------
 # test models
@@ -36,7 +42,14 @@ class AffineZ:
 
 
 def _rot(om: float, ph: float, ka: float) -> np.ndarray:
-    co, so, cp, s_p, ck, sk = np.cos(om), np.sin(om), np.cos(ph), np.sin(ph), np.cos(ka), np.sin(ka)
+    co, so, cp, s_p, ck, sk = (
+        np.cos(om),
+        np.sin(om),
+        np.cos(ph),
+        np.sin(ph),
+        np.cos(ka),
+        np.sin(ka),
+    )
     rx = np.array([[1, 0, 0], [0, co, -so], [0, so, co]])
     ry = np.array([[cp, 0, s_p], [0, 1, 0], [-s_p, 0, cp]])
     rz = np.array([[ck, -sk, 0], [sk, ck, 0], [0, 0, 1]])
@@ -48,12 +61,20 @@ class Collinearity:
 
     n_params = 6
 
-    def __init__(self, c: float = 1000.0, pp: tuple[float, float] = (500.0, 500.0)) -> None:
+    def __init__(
+        self, c: float = 1000.0, pp: tuple[float, float] = (500.0, 500.0)
+    ) -> None:
         self.c, self.pp = c, pp
 
     def project(self, p: np.ndarray, g: np.ndarray) -> np.ndarray:
         d = (g - p[:3]) @ _rot(*p[3:6])  # R^T (X - X0)
-        return np.stack([self.pp[0] - self.c * d[:, 0] / d[:, 2], self.pp[1] + self.c * d[:, 1] / d[:, 2]], axis=1)
+        return np.stack(
+            [
+                self.pp[0] - self.c * d[:, 0] / d[:, 2],
+                self.pp[1] + self.c * d[:, 1] / d[:, 2],
+            ],
+            axis=1,
+        )
 
     def jacobians(self, p: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return numeric_jacobians(self, p, g, step_ground=0.01)
@@ -65,7 +86,13 @@ class Collinearity:
 
 
 def affine_block(
-    seed: int = 0, *, n_tie: int = 80, n_ctrl: int = 6, sigma: float = 0.3, perturb: bool = True, size: float = 18000.0
+    seed: int = 0,
+    *,
+    n_tie: int = 80,
+    n_ctrl: int = 6,
+    sigma: float = 0.3,
+    perturb: bool = True,
+    size: float = 18000.0,
 ) -> dict:
     """Four overlapping ``size`` m frames (2 x 2) over 30 km of an AffineZ model, tie and control points."""
     rng = np.random.default_rng(seed)
@@ -74,13 +101,21 @@ def affine_block(
     frames_truth, models = [], []
     for o in origins:
         ang = rng.normal(0, 0.02)
-        a = (1 / 30) * (1 + rng.normal(0, 0.01)) * np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+        a = (
+            (1 / 30)
+            * (1 + rng.normal(0, 0.01))
+            * np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+        )
         t = -a @ o + rng.normal(0, 5, 2)
         frames_truth.append(np.r_[a.ravel(), t])
         models.append(AffineZ(rng.uniform(-0.02, 0.02, 2)))
     npts = n_tie + n_ctrl
     truth = np.c_[rng.uniform(500, 29500, (npts, 2)), rng.uniform(0, 800, npts)]
-    vis = np.all((truth[None, :, :2] >= origins[:, None]) & (truth[None, :, :2] < origins[:, None] + size), axis=2)
+    vis = np.all(
+        (truth[None, :, :2] >= origins[:, None])
+        & (truth[None, :, :2] < origins[:, None] + size),
+        axis=2,
+    )
     ctrl = np.zeros(npts, bool)
     ctrl[:n_ctrl] = True
     keep = ctrl | (vis.sum(0) >= 2)
@@ -107,10 +142,21 @@ def affine_block(
             p[4:] += rng.normal(0, 5, 2)
     frames = [Frame(models[f], start[f]) for f in range(4)]
     prob = Problem(frames, ground0, gprior, gw, of, op, xy, w)
-    return {"problem": prob, "truth_params": frames_truth, "truth_ground": truth, "ctrl": ctrl, "sigma": sigma}
+    return {
+        "problem": prob,
+        "truth_params": frames_truth,
+        "truth_ground": truth,
+        "ctrl": ctrl,
+        "sigma": sigma,
+    }
 
 
-def dense_normals(problem: Problem, params: list[np.ndarray], ground: np.ndarray, free: list[np.ndarray] | None = None):
+def dense_normals(
+    problem: Problem,
+    params: list[np.ndarray],
+    ground: np.ndarray,
+    free: list[np.ndarray] | None = None,
+):
     """Full (params + all ground coordinates) normal equations, one observation at a time."""
     nfr = len(problem.frames)
     free = free or [np.arange(fr.model.n_params) for fr in problem.frames]
@@ -181,20 +227,40 @@ def test_single_frame_control_only_equals_weighted_lstsq():
     w = lw @ lw.transpose(0, 2, 1)
     gw = np.broadcast_to(np.eye(3) / 15.0**2, (npt, 3, 3)).copy()
     gprior = g + rng.normal(0, 15, g.shape)
-    prob = Problem([Frame(mdl, truth + 0.01)], gprior.copy(), gprior, gw, np.zeros(npt, int), np.arange(npt), xy, w)
+    prob = Problem(
+        [Frame(mdl, truth + 0.01)],
+        gprior.copy(),
+        gprior,
+        gw,
+        np.zeros(npt, int),
+        np.arange(npt),
+        xy,
+        w,
+    )
     res = adjust(prob)
     assert res.converged
     # the same problem as one linearised least-squares system at the solution: the correction is 0
     n, t, _, _ = dense_normals(prob, res.params, res.ground)
     assert np.abs(np.linalg.solve(n, t)).max() < 1e-7
     # with (nearly) fixed control the adjustment is the plain weighted affine fit of the control points
-    prob_fixed = Problem([Frame(mdl, truth + 0.01)], g.copy(), g, gw * 1e12, np.zeros(npt, int), np.arange(npt), xy, w)
+    prob_fixed = Problem(
+        [Frame(mdl, truth + 0.01)],
+        g.copy(),
+        g,
+        gw * 1e12,
+        np.zeros(npt, int),
+        np.arange(npt),
+        xy,
+        w,
+    )
     res_fixed = adjust(prob_fixed)
     a = np.zeros((2 * npt, 6))
     a[0::2, 0], a[0::2, 1], a[0::2, 4] = g[:, 0], g[:, 1], 1
     a[1::2, 2], a[1::2, 3], a[1::2, 5] = g[:, 0], g[:, 1], 1
     obs = (xy - g[:, 2:3] * mdl.kz).ravel()
-    sw = np.zeros((2 * npt, 2 * npt))  # block-diagonal square root of the weights (W = L L^T)
+    sw = np.zeros(
+        (2 * npt, 2 * npt)
+    )  # block-diagonal square root of the weights (W = L L^T)
     for i in range(npt):
         sw[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = np.linalg.cholesky(w[i]).T
     coef = np.linalg.lstsq(sw @ a, sw @ obs, rcond=None)[0]
@@ -226,22 +292,91 @@ def test_schur_step_equals_full_dense_normal_equations():
     dx = np.linalg.solve(n, t)
     res = adjust(prob, AdjustOptions(max_iter=1, covariance=False))
     for f in range(4):
-        np.testing.assert_allclose(res.params[f] - start[f], dx[offs[f] : offs[f + 1]], rtol=1e-8, atol=1e-10 * np.abs(start[f]).max())
-    np.testing.assert_allclose(res.ground - prob.ground, dx[offs[-1] :].reshape(-1, 3), rtol=1e-8, atol=1e-7)
+        np.testing.assert_allclose(
+            res.params[f] - start[f],
+            dx[offs[f] : offs[f + 1]],
+            rtol=1e-8,
+            atol=1e-10 * np.abs(start[f]).max(),
+        )
+    np.testing.assert_allclose(
+        res.ground - prob.ground, dx[offs[-1] :].reshape(-1, 3), rtol=1e-8, atol=1e-7
+    )
     # Levenberg-Marquardt damping reaches the same solution
     plain = adjust(prob, AdjustOptions(covariance=False))
     damped = adjust(prob, AdjustOptions(damping=1.0, covariance=False))
     assert damped.converged
     for f in range(4):
-        np.testing.assert_allclose(damped.params[f], plain.params[f], rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(
+            damped.params[f], plain.params[f], rtol=1e-7, atol=1e-9
+        )
+
+
+def test_strip_uses_banded_cholesky_and_equals_dense():
+    """A long strip: frames renumbered (RCM) give a banded reduced system (seed sec. 2.4)."""
+    rng = np.random.default_rng(14)
+    nfr = 12
+    order = rng.permutation(nfr)  # frame numbering scrambled on purpose
+    frames, truth = [], []
+    for k in range(nfr):
+        pos = order[k] * 10000.0
+        p = (
+            np.r_[1 / 30, 0.0, 0.0, 1 / 30, -pos / 30, 0.0]
+            + np.r_[rng.normal(0, 1e-4, 4), rng.normal(0, 2, 2)]
+        )
+        truth.append(p)
+        frames.append(
+            Frame(
+                AffineZ(rng.uniform(-0.02, 0.02, 2)), p + np.r_[np.zeros(4), 1.0, -1.0]
+            )
+        )
+    pts = np.c_[
+        rng.uniform(0, 10000 * nfr + 5000, 600),
+        rng.uniform(0, 15000, 600),
+        rng.uniform(0, 500, 600),
+    ]
+    lo = order * 10000.0
+    vis = (pts[None, :, 0] >= lo[:, None]) & (pts[None, :, 0] < lo[:, None] + 15000)
+    of, op = np.nonzero(vis)
+    xy = np.empty((of.size, 2))
+    for f in range(nfr):
+        xy[of == f] = frames[f].model.project(truth[f], pts[op[of == f]])
+    xy += rng.normal(0, 0.3, xy.shape)
+    gw = np.zeros((600, 3, 3))
+    gw[:, 2, 2] = 1 / 50.0**2  # tie heights constrained to an a-priori value
+    gw[::25] = np.eye(3) / 15.0**2  # control
+    prior = pts.copy()
+    prior[:, 2] = 250.0
+    prior[::25] = pts[::25]
+    prob = Problem(
+        frames,
+        prior.copy(),
+        prior,
+        gw,
+        of,
+        op,
+        xy,
+        np.broadcast_to(np.eye(2) / 0.09, (of.size, 2, 2)).copy(),
+    )
+    res = adjust(prob, AdjustOptions(max_iter=1, covariance=False))
+    assert res.solver == "banded-cholesky"
+    start = [fr.params for fr in frames]
+    n, t, _, offs = dense_normals(prob, start, prob.ground)
+    dx = np.linalg.solve(n, t)
+    for f in range(nfr):
+        np.testing.assert_allclose(
+            res.params[f] - start[f], dx[offs[f] : offs[f + 1]], rtol=1e-7, atol=1e-9
+        )
+    assert adjust(prob).converged
 
 
 def test_covariances_and_redundancy_equal_dense_inverse():
     blk = affine_block(5, n_tie=40)
     prob = blk["problem"]
-    prob.frames[1].prior_weight = np.diag([1e6, 1e6, 1e6, 1e6, 1.0, 1.0])  # pseudo-observations on a frame
+    prob.frames[1].prior_weight = np.diag(
+        [1e6, 1e6, 1e6, 1e6, 1.0, 1.0]
+    )  # pseudo-observations on a frame
     res = adjust(prob)
-    n, t, omega, offs = dense_normals(prob, res.params, res.ground)
+    n, _, omega, offs = dense_normals(prob, res.params, res.ground)
     q = np.linalg.inv(n)
     npar = offs[-1]
     m = prob.obs_frame.size
@@ -250,9 +385,20 @@ def test_covariances_and_redundancy_equal_dense_inverse():
     assert res.sigma0 == pytest.approx(np.sqrt(omega / dof), rel=1e-8)
     s2 = res.sigma0**2
     for f in range(4):
-        np.testing.assert_allclose(res.param_cov[f], s2 * q[offs[f] : offs[f + 1], offs[f] : offs[f + 1]], rtol=1e-6)
-    qg = np.stack([q[npar + 3 * p : npar + 3 * p + 3, npar + 3 * p : npar + 3 * p + 3] for p in range(res.ground.shape[0])])
-    np.testing.assert_allclose(res.ground_cov, s2 * qg, rtol=1e-6, atol=1e-9 * np.abs(qg).max())
+        np.testing.assert_allclose(
+            res.param_cov[f],
+            s2 * q[offs[f] : offs[f + 1], offs[f] : offs[f + 1]],
+            rtol=1e-6,
+        )
+    qg = np.stack(
+        [
+            q[npar + 3 * p : npar + 3 * p + 3, npar + 3 * p : npar + 3 * p + 3]
+            for p in range(res.ground.shape[0])
+        ]
+    )
+    np.testing.assert_allclose(
+        res.ground_cov, s2 * qg, rtol=1e-6, atol=1e-9 * np.abs(qg).max()
+    )
     # redundancy numbers r_i = 2 - tr(W_i A_i Q A_i^T)
     red = np.empty(m)
     for i in range(m):
@@ -263,7 +409,9 @@ def test_covariances_and_redundancy_equal_dense_inverse():
         a[:, npar + 3 * p : npar + 3 * p + 3] = jg[0]
         red[i] = 2 - np.trace(prob.obs_weight[i] @ a @ q @ a.T)
     np.testing.assert_allclose(res.redundancy, red, atol=1e-8)
-    assert np.nansum(res.redundancy) + res.pseudo_redundancy == pytest.approx(dof, rel=1e-8)
+    assert np.nansum(res.redundancy) + res.pseudo_redundancy == pytest.approx(
+        dof, rel=1e-8
+    )
 
 
 def _edge_weight(normal: np.ndarray, sigma: float, k: float) -> np.ndarray:
@@ -288,7 +436,9 @@ def test_crossing_edges_act_like_control_points(k):
     n1 = np.c_[np.cos(ang), np.sin(ang)]
     n2 = np.c_[-np.sin(ang), np.cos(ang)]
     shift = 0.0 if np.isfinite(k) else 1.0
-    xy1 = prob.obs_xy[i_c] + shift * rng.uniform(-20, 20, (i_c.size, 1)) * n2  # along edge 1 (direction n2)
+    xy1 = (
+        prob.obs_xy[i_c] + shift * rng.uniform(-20, 20, (i_c.size, 1)) * n2
+    )  # along edge 1 (direction n2)
     xy2 = prob.obs_xy[i_c] + shift * rng.uniform(-20, 20, (i_c.size, 1)) * n1
     w1 = np.stack([_edge_weight(v, sigma, k) for v in n1])
     w2 = np.stack([_edge_weight(v, sigma, k) for v in n2])
@@ -307,9 +457,18 @@ def test_crossing_edges_act_like_control_points(k):
     assert res.converged
     tol = 1e-8 if np.isinf(k) else 1e-5
     for f in range(4):
-        np.testing.assert_allclose(res.params[f], ref.params[f], rtol=tol, atol=tol * np.abs(ref.params[f]).max())
-    np.testing.assert_allclose(res.ground, ref.ground, atol=1e-4 if np.isinf(k) else 1e-2)
-    if np.isinf(k):  # rank-1 observations: same statistics, redundancy numbers within [0, 1]
+        np.testing.assert_allclose(
+            res.params[f],
+            ref.params[f],
+            rtol=tol,
+            atol=tol * np.abs(ref.params[f]).max(),
+        )
+    np.testing.assert_allclose(
+        res.ground, ref.ground, atol=1e-4 if np.isinf(k) else 1e-2
+    )
+    if np.isinf(
+        k
+    ):  # rank-1 observations: same statistics, redundancy numbers within [0, 1]
         assert res.sigma0 == pytest.approx(ref.sigma0, rel=1e-6)
         r_edge = res.redundancy[keep.size :]
         assert np.all((r_edge >= -1e-9) & (r_edge <= 1 + 1e-9))
@@ -328,7 +487,16 @@ def test_robust_and_snooping_reject_displaced_tie_observations():
     ang = rng.uniform(0, 2 * np.pi, bad.size)
     xy = prob.obs_xy.copy()
     xy[bad] += rng.uniform(5, 50, (bad.size, 1)) * np.c_[np.cos(ang), np.sin(ang)]
-    dirty = Problem(prob.frames, prob.ground, prob.ground_prior, prob.ground_weight, prob.obs_frame, prob.obs_point, xy, prob.obs_weight)
+    dirty = Problem(
+        prob.frames,
+        prob.ground,
+        prob.ground_prior,
+        prob.ground_weight,
+        prob.obs_frame,
+        prob.obs_point,
+        xy,
+        prob.obs_weight,
+    )
     res = adjust(dirty, AdjustOptions(robust=True, snooping=True))
     assert not res.obs_active[bad].any()
     false_alarms = (~res.obs_active).sum() - bad.size
@@ -342,14 +510,19 @@ def test_robust_and_snooping_reject_displaced_tie_observations():
     assert np.all(np.isnan(r[~res.obs_active]))
     ra = r[res.obs_active] / 2  # per component
     assert np.all((ra >= -1e-9) & (ra <= 1 + 1e-9))
-    assert np.nansum(r) + res.pseudo_redundancy == pytest.approx(res.total_redundancy, rel=1e-8)
+    assert np.nansum(r) + res.pseudo_redundancy == pytest.approx(
+        res.total_redundancy, rel=1e-8
+    )
     assert np.all(res.normalized_residuals[res.obs_active] < 3.29 + 1e-9)
 
 
 def test_snooping_alone_finds_a_single_blunder():
     blk = affine_block(10, n_tie=100)
     prob = blk["problem"]
-    tie_obs = np.flatnonzero(~blk["ctrl"][prob.obs_point] & (np.bincount(prob.obs_point)[prob.obs_point] >= 3))
+    tie_obs = np.flatnonzero(
+        ~blk["ctrl"][prob.obs_point]
+        & (np.bincount(prob.obs_point)[prob.obs_point] >= 3)
+    )
     i = tie_obs[0]
     prob.obs_xy[i] += [8.0, -6.0]
     res = adjust(prob, AdjustOptions(snooping=True))
@@ -394,7 +567,12 @@ def test_fixed_parameters_stay_and_match_dense_solution():
     frees[2] = np.flatnonzero(free)
     n, t, _, offs = dense_normals(prob, start, prob.ground, frees)
     dx = np.linalg.solve(n, t)
-    np.testing.assert_allclose(res.params[2][free] - start[2][free], dx[offs[2] : offs[3]], rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(
+        res.params[2][free] - start[2][free],
+        dx[offs[2] : offs[3]],
+        rtol=1e-8,
+        atol=1e-12,
+    )
     assert np.all(res.param_cov[2][4] == 0) and np.all(res.param_cov[2][:, 4] == 0)
     full = adjust(prob)
     assert full.converged and full.params[2][4] == fixed_value
@@ -403,8 +581,15 @@ def test_fixed_parameters_stay_and_match_dense_solution():
 def test_collinearity_strip_converges_from_perturbed_start():
     rng = np.random.default_rng(13)
     mdl = Collinearity()
-    truth = [np.r_[1000.0 + 2000.0 * k, 2500.0, 5000.0, rng.normal(0, 0.01, 3)] for k in range(3)]
-    pts = np.c_[rng.uniform(-1000, 7000, (400, 1)), rng.uniform(0, 5000, (400, 1)), rng.uniform(0, 300, (400, 1))]
+    truth = [
+        np.r_[1000.0 + 2000.0 * k, 2500.0, 5000.0, rng.normal(0, 0.01, 3)]
+        for k in range(3)
+    ]
+    pts = np.c_[
+        rng.uniform(-1000, 7000, (400, 1)),
+        rng.uniform(0, 5000, (400, 1)),
+        rng.uniform(0, 300, (400, 1)),
+    ]
     of, op, xy = [], [], []
     for f in range(3):
         im = mdl.project(truth[f], pts)

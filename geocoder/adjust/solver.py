@@ -38,7 +38,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 try:  # optional, faster and symmetric
     from sksparse.cholmod import cholesky as _cholmod_cholesky  # type: ignore[import-not-found]
-except Exception:  # pragma: no cover - depends on the environment
+except ImportError:  # pragma: no cover - depends on the environment
     _cholmod_cholesky = None
 
 __all__ = [
@@ -51,10 +51,16 @@ __all__ = [
     "numeric_jacobians",
 ]
 
-_RANK_RTOL = 1e-9  # eigenvalues below this fraction of the largest count as zero (weight ranks)
-_POINT_RTOL = 1e-10  # a 3x3 point block whose eigenvalue ratio is below this is singular
+_RANK_RTOL = (
+    1e-9  # eigenvalues below this fraction of the largest count as zero (weight ranks)
+)
+_POINT_RTOL = (
+    1e-10  # a 3x3 point block whose eigenvalue ratio is below this is singular
+)
 _GEMM_BUDGET = 1 << 16  # observation pairs gathered at once in the assembly of S
-_BANDED_MAX_ENTRIES = 1 << 26  # banded Cholesky when (bandwidth + 1) * unknowns is below this (512 MB)
+_BANDED_MAX_ENTRIES = (
+    1 << 26
+)  # banded Cholesky when (bandwidth + 1) * unknowns is below this (512 MB)
 
 
 class SensorModel(Protocol):
@@ -66,7 +72,9 @@ class SensorModel(Protocol):
         """Image coordinates ``(m, 2)`` as ``(x=col, y=row)`` of ground points ``(m, 3)``."""
         ...
 
-    def jacobians(self, params: np.ndarray, ground: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def jacobians(
+        self, params: np.ndarray, ground: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Derivatives of the projection: w.r.t. params ``(m, 2, n_params)``, ground ``(m, 2, 3)``."""
         ...
 
@@ -110,17 +118,23 @@ def numeric_jacobians(
         hp = np.broadcast_to(np.asarray(step_params, dtype=np.float64), (n,))
     hg = np.broadcast_to(np.asarray(step_ground, dtype=np.float64), (3,))
     jp = np.empty((m, 2, n))
-    for k in range(n):  # loop over parameters only; each call is vectorised over the points
+    for k in range(
+        n
+    ):  # loop over parameters only; each call is vectorised over the points
         p1, p2 = params.copy(), params.copy()
         p1[k] += hp[k]
         p2[k] -= hp[k]
-        jp[:, :, k] = (model.project(p1, ground) - model.project(p2, ground)) / (2.0 * hp[k])
+        jp[:, :, k] = (model.project(p1, ground) - model.project(p2, ground)) / (
+            2.0 * hp[k]
+        )
     jg = np.empty((m, 2, 3))
     for k in range(3):
         g1, g2 = ground.copy(), ground.copy()
         g1[:, k] += hg[k]
         g2[:, k] -= hg[k]
-        jg[:, :, k] = (model.project(params, g1) - model.project(params, g2)) / (2.0 * hg[k])
+        jg[:, :, k] = (model.project(params, g1) - model.project(params, g2)) / (
+            2.0 * hg[k]
+        )
     return jp, jg
 
 
@@ -328,7 +342,9 @@ def _ranks(w: np.ndarray) -> np.ndarray:
     return np.sum(ev > _RANK_RTOL * np.maximum(top, 0.0), axis=1) * (top[:, 0] > 0)
 
 
-def _same_point_pairs(obs: np.ndarray, point: np.ndarray, *, ordered: bool) -> tuple[np.ndarray, np.ndarray]:
+def _same_point_pairs(
+    obs: np.ndarray, point: np.ndarray, *, ordered: bool
+) -> tuple[np.ndarray, np.ndarray]:
     """All pairs ``(a, b)`` of observations ``obs`` sharing a point (``a`` before ``b`` unless ordered).
 
     Includes ``a == b``.  With ``ordered`` every ``(a, b)`` and ``(b, a)`` is listed, grouped
@@ -356,7 +372,13 @@ def _same_point_pairs(obs: np.ndarray, point: np.ndarray, *, ordered: bool) -> t
 
 
 def _segmented_gemm(
-    x: np.ndarray, y: np.ndarray, a: np.ndarray, b: np.ndarray, seg: np.ndarray, nseg: int, scale: np.ndarray
+    x: np.ndarray,
+    y: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    seg: np.ndarray,
+    nseg: int,
+    scale: np.ndarray,
 ) -> np.ndarray:
     """``U[s] = sum_{q: seg_q = s} scale_q x[a_q]^T y[b_q]`` for ``x, y`` of shape (m, 3, n).
 
@@ -384,7 +406,10 @@ def _segmented_gemm(
             xg = x[a[pos]] * wq[:, :, None, None]  # (s, L, 3, n)
             yg = y[b[pos]]
             k = ss.size
-            out[ss] = np.matmul(xg.reshape(k, 3 * length, n).transpose(0, 2, 1), yg.reshape(k, 3 * length, n))
+            out[ss] = np.matmul(
+                xg.reshape(k, 3 * length, n).transpose(0, 2, 1),
+                yg.reshape(k, 3 * length, n),
+            )
     return out
 
 
@@ -397,7 +422,9 @@ def _segmented_gemm(
 class _Layout:
     n_frames: int
     n_points: int
-    order: np.ndarray  # internal observation i is problem observation order[i] (sorted by frame)
+    order: (
+        np.ndarray
+    )  # internal observation i is problem observation order[i] (sorted by frame)
     frame_start: np.ndarray  # (F + 1,)
     obs_frame: np.ndarray
     obs_point: np.ndarray
@@ -431,7 +458,11 @@ def _layout(problem: Problem) -> _Layout:
         fmask = np.ones(p.size, bool) if fr.free is None else np.asarray(fr.free, bool)
         fi = np.flatnonzero(fmask)
         free.append(fi)
-        prior_val.append(p.copy() if fr.prior_value is None else np.asarray(fr.prior_value, np.float64))
+        prior_val.append(
+            p.copy()
+            if fr.prior_value is None
+            else np.asarray(fr.prior_value, np.float64)
+        )
         if fr.prior_weight is None:
             prior_w.append(None)
         else:
@@ -475,25 +506,38 @@ class _Lin:
     jg: np.ndarray  # (M, 2, 3)
 
 
-def _residuals(lay: _Layout, models: list[SensorModel], params: list[np.ndarray], ground: np.ndarray) -> np.ndarray:
+def _residuals(
+    lay: _Layout,
+    models: list[SensorModel],
+    params: list[np.ndarray],
+    ground: np.ndarray,
+) -> np.ndarray:
     """Observed minus projected image coordinates (M, 2), one model call per frame."""
     res = np.zeros((lay.obs_frame.size, 2))
     for f in range(lay.n_frames):
         s0, s1 = lay.frame_start[f], lay.frame_start[f + 1]
         if s1 > s0:
-            res[s0:s1] = lay.obs_xy[s0:s1] - models[f].project(params[f], ground[lay.obs_point[s0:s1]])
+            res[s0:s1] = lay.obs_xy[s0:s1] - models[f].project(
+                params[f], ground[lay.obs_point[s0:s1]]
+            )
     return res
 
 
 def _linearise(
-    lay: _Layout, models: list[SensorModel], params: list[np.ndarray], ground: np.ndarray, res: np.ndarray | None = None
+    lay: _Layout,
+    models: list[SensorModel],
+    params: list[np.ndarray],
+    ground: np.ndarray,
+    res: np.ndarray | None = None,
 ) -> _Lin:
     m = lay.obs_frame.size
     if res is None:
         res = _residuals(lay, models, params, ground)
     jp = np.zeros((m, 2, lay.nmax))
     jg = np.empty((m, 2, 3))
-    for f in range(lay.n_frames):  # one model call per frame, vectorised over its observations
+    for f in range(
+        lay.n_frames
+    ):  # one model call per frame, vectorised over its observations
         s0, s1 = lay.frame_start[f], lay.frame_start[f + 1]
         if s1 == s0:
             continue
@@ -505,7 +549,14 @@ def _linearise(
     return _Lin(res, jp, jg)
 
 
-def _cost(lay: _Layout, res: np.ndarray, w: np.ndarray, params: list[np.ndarray], ground: np.ndarray, valid: np.ndarray) -> float:
+def _cost(
+    lay: _Layout,
+    res: np.ndarray,
+    w: np.ndarray,
+    params: list[np.ndarray],
+    ground: np.ndarray,
+    valid: np.ndarray,
+) -> float:
     """Weighted square sum of observation and pseudo-observation residuals."""
     c = float(np.einsum("mi,mij,mj->", res, w, res))
     for f in range(lay.n_frames):
@@ -532,12 +583,20 @@ class _Normals:
     frame_pairs: np.ndarray  # (K, 2) frames coupled through points
 
 
-def _normals(lay: _Layout, lin: _Lin, factor: np.ndarray, params: list[np.ndarray], ground: np.ndarray) -> _Normals:
+def _normals(
+    lay: _Layout,
+    lin: _Lin,
+    factor: np.ndarray,
+    params: list[np.ndarray],
+    ground: np.ndarray,
+) -> _Normals:
     nf, npt, nmax = lay.n_frames, lay.n_points, lay.nmax
     w = lay.obs_weight * factor[:, None, None]
     pt = lay.obs_point
     wjg = np.matmul(w, lin.jg)  # (M, 2, 3)
-    ngg = _sum_by(pt, np.matmul(lin.jg.transpose(0, 2, 1), wjg), npt) + lay.ground_weight
+    ngg = (
+        _sum_by(pt, np.matmul(lin.jg.transpose(0, 2, 1), wjg), npt) + lay.ground_weight
+    )
     ev = np.linalg.eigvalsh(ngg)
     valid = (ev[:, -1] > 0) & (ev[:, 0] > _POINT_RTOL * ev[:, -1])
     used = (factor > 0) & valid[pt] & (lay.obs_rank > 0)
@@ -596,7 +655,11 @@ def _normals(lay: _Layout, lin: _Lin, factor: np.ndarray, params: list[np.ndarra
     vals = np.concatenate([nff.ravel(), -u.ravel(), -u.transpose(0, 2, 1).ravel()])
     keep = (rows >= 0) & (cols >= 0)
     nu = lay.n_unknowns
-    rows, cols, vals = rows[keep].astype(np.int32), cols[keep].astype(np.int32), vals[keep]
+    rows, cols, vals = (
+        rows[keep].astype(np.int32),
+        cols[keep].astype(np.int32),
+        vals[keep],
+    )
     s = sp.coo_matrix((vals, (rows, cols)), shape=(nu, nu)).tocsc()
     del rows, cols, vals
     s.sum_duplicates()
@@ -604,13 +667,27 @@ def _normals(lay: _Layout, lin: _Lin, factor: np.ndarray, params: list[np.ndarra
     sel = lay.idx >= 0
     r[lay.idx[sel]] = tp[sel]
     pairs = np.c_[ka, kb]
-    return _Normals(w, used, valid, ninv, ct, et, tg, s, r, np.diagonal(ngg, axis1=1, axis2=2).copy(), pairs)
+    return _Normals(
+        w,
+        used,
+        valid,
+        ninv,
+        ct,
+        et,
+        tg,
+        s,
+        r,
+        np.diagonal(ngg, axis1=1, axis2=2).copy(),
+        pairs,
+    )
 
 
 def _frame_order(lay: _Layout, pairs: np.ndarray) -> tuple[np.ndarray, int]:
     """Unknown permutation from a reverse Cuthill-McKee ordering of the frame graph, and its bandwidth."""
     nf = lay.n_frames
-    adj = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(nf, nf)).tocsr()
+    adj = sp.coo_matrix(
+        (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(nf, nf)
+    ).tocsr()
     order = reverse_cuthill_mckee((adj + adj.T).tocsr(), symmetric_mode=True)
     perm = lay.idx[order].ravel()
     perm = perm[perm >= 0]
@@ -622,11 +699,15 @@ def _frame_order(lay: _Layout, pairs: np.ndarray) -> tuple[np.ndarray, int]:
     first[1:] = np.cumsum(nfree[order])
     pa, pb = pos[pairs[:, 0]], pos[pairs[:, 1]]
     lo, hi = np.minimum(pa, pb), np.maximum(pa, pb)
-    bw = int(np.max(first[hi + 1] - 1 - first[lo], initial=int(nfree.max(initial=1)) - 1))
+    bw = int(
+        np.max(first[hi + 1] - 1 - first[lo], initial=int(nfree.max(initial=1)) - 1)
+    )
     return perm, bw
 
 
-def _solve(s: sp.csc_matrix, r: np.ndarray, order: tuple[np.ndarray, int] | None = None) -> tuple[np.ndarray, str]:
+def _solve(
+    s: sp.csc_matrix, r: np.ndarray, order: tuple[np.ndarray, int] | None = None
+) -> tuple[np.ndarray, str]:
     """Solve the reduced normal equations: CHOLMOD, banded Cholesky (RCM frame order) or SuperLU."""
     n = r.size
     if n == 0:
@@ -634,7 +715,7 @@ def _solve(s: sp.csc_matrix, r: np.ndarray, order: tuple[np.ndarray, int] | None
     if _cholmod_cholesky is not None:  # pragma: no cover - optional dependency
         try:
             return _cholmod_cholesky(s)(r), "cholmod"
-        except Exception:
+        except Exception:  # noqa: BLE001, S110 - not positive definite: use the fallbacks below
             pass
     if order is not None:
         perm, bw = order
@@ -644,7 +725,9 @@ def _solve(s: sp.csc_matrix, r: np.ndarray, order: tuple[np.ndarray, int] | None
             ab = np.zeros((bw + 1, n))
             ab[bw + sp_.row[up] - sp_.col[up], sp_.col[up]] = sp_.data[up]
             try:
-                x = scipy.linalg.solveh_banded(ab, r[perm], overwrite_ab=True, check_finite=False)
+                x = scipy.linalg.solveh_banded(
+                    ab, r[perm], overwrite_ab=True, check_finite=False
+                )
             except np.linalg.LinAlgError:
                 pass
             else:
@@ -685,17 +768,20 @@ def _gauss_newton(
     cost = _cost(lay, lin.res, nrm.w, params, ground, nrm.valid)
     lam = float(opt.damping)
     state = _State(params, ground, lin, nrm)
-    order = _frame_order(lay, nrm.frame_pairs)
     for it in range(opt.max_iter):
         t0 = time.perf_counter()
         s = nrm.s
         if lam > 0:
             s = (s + sp.diags(lam * s.diagonal())).tocsc()
-        dp, state.solver = _solve(s, nrm.r, order)
+        dp, state.solver = _solve(s, nrm.r, _frame_order(lay, nrm.frame_pairs))
         dpad = np.zeros((lay.n_frames, lay.nmax))
         sel = lay.idx >= 0
         dpad[sel] = dp[lay.idx[sel]]
-        back = _sum_by(lay.obs_point, np.einsum("min,mn->mi", nrm.ct, dpad[lay.obs_frame]), lay.n_points)
+        back = _sum_by(
+            lay.obs_point,
+            np.einsum("min,mn->mi", nrm.ct, dpad[lay.obs_frame]),
+            lay.n_points,
+        )
         dg = np.einsum("pij,pj->pi", nrm.ninv, nrm.tg - back)
         new_params = []
         for f in range(lay.n_frames):
@@ -795,7 +881,9 @@ def _statistics(lay: _Layout, st: _State, *, dense: bool) -> _Stats:
         s0, s1 = lay.frame_start[f], lay.frame_start[f + 1]
         jq[s0:s1] = lin.jp[s0:s1] @ qdiag[f]
     jy = np.matmul(lin.jp, yt.transpose(0, 2, 1))  # Jp Y  (M, 2, 3)
-    bmat = np.matmul(jq, lin.jp.transpose(0, 2, 1)) - np.matmul(jy, k.transpose(0, 2, 1))
+    bmat = np.matmul(jq, lin.jp.transpose(0, 2, 1)) - np.matmul(
+        jy, k.transpose(0, 2, 1)
+    )
     bmat -= np.matmul(k, jy.transpose(0, 2, 1))
     bmat += np.matmul(np.matmul(k, v[pt]), k.transpose(0, 2, 1))
     bmat += np.matmul(k, lin.jg.transpose(0, 2, 1))
@@ -803,16 +891,25 @@ def _statistics(lay: _Layout, st: _State, *, dense: bool) -> _Stats:
     red = np.where(nrm.used, lay.obs_rank - wb, np.nan)
     vwv = np.einsum("mi,mij,mj->m", lin.res, nrm.w, lin.res)
     with np.errstate(invalid="ignore", divide="ignore"):
-        wt = np.where(nrm.used & (red > 1e-10), np.sqrt(vwv / red) / (sigma0 if np.isfinite(sigma0) else 1.0), np.nan)
+        wt = np.where(
+            nrm.used & (red > 1e-10),
+            np.sqrt(vwv / red) / (sigma0 if np.isfinite(sigma0) else 1.0),
+            np.nan,
+        )
     # pseudo-observations
     pseudo = 0.0
     for f in range(nf):
         if lay.prior_w[f] is not None:
             kf = lay.free[f].size
             pw = lay.prior_w[f]
-            pseudo += float(_ranks(pw[None])[0]) - float(np.sum(pw * qdiag[f, :kf, :kf]))
+            pseudo += float(_ranks(pw[None])[0]) - float(
+                np.sum(pw * qdiag[f, :kf, :kf])
+            )
     vg = nrm.valid
-    pseudo += float(lay.ground_rank[vg].sum() - np.einsum("pij,pji->", lay.ground_weight[vg], qgg[vg]))
+    pseudo += float(
+        lay.ground_rank[vg].sum()
+        - np.einsum("pij,pji->", lay.ground_weight[vg], qgg[vg])
+    )
     param_cov = []
     for f in range(nf):
         n_all = st.params[f].size
@@ -822,11 +919,19 @@ def _statistics(lay: _Layout, st: _State, *, dense: bool) -> _Stats:
         param_cov.append(c)
     gcov = s2 * qgg
     gcov[~vg] = np.nan
-    out.redundancy, out.wtest, out.param_cov, out.ground_cov, out.pseudo_redundancy = red, wt, param_cov, gcov, pseudo
+    out.redundancy, out.wtest, out.param_cov, out.ground_cov, out.pseudo_redundancy = (
+        red,
+        wt,
+        param_cov,
+        gcov,
+        pseudo,
+    )
     return out
 
 
-def _robust_scale(lay: _Layout, st: _State, *, trimmed: bool) -> tuple[np.ndarray, float]:
+def _robust_scale(
+    lay: _Layout, st: _State, *, trimmed: bool
+) -> tuple[np.ndarray, float]:
     """Per-observation ``sqrt(r^T W r / rank)`` (nominal weights) and a robust sigma0 estimate.
 
     ``trimmed``: sigma0 of the observations kept in the last round (those with a positive
@@ -841,13 +946,23 @@ def _robust_scale(lay: _Layout, st: _State, *, trimmed: bool) -> tuple[np.ndarra
     raw = np.sqrt(vwv / rk)
     if trimmed:
         nrm = st.normals
-        omega = _cost(lay, st.lin.res, lay.obs_weight * nrm.used[:, None, None], st.params, st.ground, nrm.valid)
+        omega = _cost(
+            lay,
+            st.lin.res,
+            lay.obs_weight * nrm.used[:, None, None],
+            st.params,
+            st.ground,
+            nrm.valid,
+        )
         dof = _redundancy_total(lay, nrm)
         if dof > 0 and omega > 0:
             return raw, float(np.sqrt(omega / dof))
     pt = lay.obs_point
     use = st.normals.valid[pt] & (lay.obs_rank > 0)
-    ncomp = np.bincount(pt[use], weights=lay.obs_rank[use], minlength=lay.n_points) + lay.ground_rank
+    ncomp = (
+        np.bincount(pt[use], weights=lay.obs_rank[use], minlength=lay.n_points)
+        + lay.ground_rank
+    )
     frac = 1.0 - 3.0 / np.maximum(ncomp, 1.0)
     use &= frac[pt] > 0.05
     if not use.any():
@@ -916,14 +1031,20 @@ def adjust(problem: Problem, options: AdjustOptions | None = None) -> AdjustResu
     rweight = np.ones(m)
     st = _gauss_newton(lay, models, params, ground, active.astype(float), opt, times)
     if opt.robust:
-        kinds = [_weight_l1] * opt.robust_l1_iterations + [_weight_exp] * opt.robust_exp_iterations
-        for rnd, wfun in enumerate(kinds):  # weights are recomputed for every observation in every round
+        kinds = [_weight_l1] * opt.robust_l1_iterations + [
+            _weight_exp
+        ] * opt.robust_exp_iterations
+        for rnd, wfun in enumerate(
+            kinds
+        ):  # weights are recomputed for every observation in every round
             raw, sig = _robust_scale(lay, st, trimmed=wfun is _weight_exp and rnd > 0)
             rweight = wfun(raw / sig)
             active = rweight >= opt.robust_min_weight
             rweight[~active] = 0.0
             st = _gauss_newton(lay, models, st.params, st.ground, rweight, opt, times)
-        st = _gauss_newton(lay, models, st.params, st.ground, active.astype(float), opt, times)
+        st = _gauss_newton(
+            lay, models, st.params, st.ground, active.astype(float), opt, times
+        )
     dense = lay.n_unknowns <= opt.max_dense_unknowns
     n_snooped = 0
     stats = _statistics(lay, st, dense=dense and (opt.snooping or opt.covariance))
@@ -936,7 +1057,9 @@ def adjust(problem: Problem, options: AdjustOptions | None = None) -> AdjustResu
             active[worst] = False
             rweight[worst] = 0.0
             n_snooped += 1
-            st = _gauss_newton(lay, models, st.params, st.ground, active.astype(float), opt, times)
+            st = _gauss_newton(
+                lay, models, st.params, st.ground, active.astype(float), opt, times
+            )
             stats = _statistics(lay, st, dense=True)
     full = dense and (opt.covariance or opt.snooping)
 
