@@ -1,4 +1,4 @@
-"""The seed's rectification experiments (seed 000 Tables 3 and 4-5, blunders), printed beside the seed.
+"""The seed's rectification experiments (seed 000 Tables 3, 4-5 and 6, blunders), printed beside the seed.
 
 Run:  python benchmarks/bench_adjust.py
 """
@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from geocoder.adjust.experiments import block_table, blunder_case, single_frame_table
+from geocoder.adjust.experiments import block_table, blunder_case, edge_table, single_frame_table
 
 SEED_T3 = {10: (11.8, 102.5), 15: (0.6, 13.2), 25: (0.5, 10.8), 40: (0.5, 10.4), 81: (0.5, 9.9)}
 SEED_T5 = [(90.8, None), (79.9, None), (66.2, 75.8), (69.8, 72.2), (67.9, 67.9)]
@@ -34,6 +34,14 @@ def main() -> None:
     print("| blunders | found | false alarms | check RMS clean | contaminated | robust + snooping |")
     print("|---:|---:|---:|---:|---:|---:|")
     print(f"| {r['blunders']} | {r['found']} | {r['false_alarms']} | {r['clean_rms']:.1f} | {r['contaminated_rms']:.1f} | {r['robust_rms']:.1f} |")
+    print("\nTable 6: check RMS (m), single frame, edge pairs as control (mean +- std over replicates);")
+    print("configuration 0 = the same number of conventional control points")
+    rows = edge_table(counts=(25, 41, 81, 145), configurations=tuple(range(1, 11)), replicates=5)
+    print("| configuration | " + " | ".join(f"{n} pairs" for n in (25, 41, 81, 145)) + " |")
+    print("|---:|" + "---:|" * 4)
+    for cfg in range(0, 11):
+        cells = [f"{r['mean']:.1f} +- {r['std']:.1f}" for r in rows if r["configuration"] == cfg]
+        print(f"| {cfg} | " + " | ".join(cells) + " |")
     print(f"\n{time.perf_counter() - t0:.0f} s")
 
 
