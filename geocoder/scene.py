@@ -215,6 +215,19 @@ class WindowReader:
     def shape(self) -> tuple[int, ...]:
         return tuple(self.array.shape)
 
+    def sample(self, x: np.ndarray, y: np.ndarray, *, method: str) -> np.ndarray:
+        """All bands at pixel positions ``(x, y)``, reading only the window they need.
+
+        Returns float32 ``(bands, *x.shape)``, NaN where the image has no data.
+        """
+        from .kernels.resample import sample, window_for
+
+        win = window_for(x, y, method=method, shape=self.shape[1:])
+        if win is None:
+            return np.full((self.shape[0], *np.shape(x)), np.nan, dtype=np.float32)
+        r0, r1, c0, c1 = win
+        return sample(self.read(r0, r1, c0, c1), x - c0, y - r0, method=method)
+
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
         """Window ``[:, row0:row1, col0:col1]`` clipped to the array; float32, NaN outside."""
         _, h, w = self.shape

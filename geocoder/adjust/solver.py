@@ -36,6 +36,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from ..kernels.robust import weight_exp, weight_l1
+
 try:  # optional, faster and symmetric
     from sksparse.cholmod import cholesky as _cholmod_cholesky  # type: ignore[import-not-found]
 except ImportError:  # pragma: no cover - depends on the environment
@@ -313,16 +315,6 @@ class AdjustResult:
 # --------------------------------------------------------------------------------------------
 # small vectorised helpers
 # --------------------------------------------------------------------------------------------
-
-
-def _weight_l1(v: np.ndarray) -> np.ndarray:
-    """Eq 20b ``4 (sqrt(1 + v^2/2) - 1) / v^2`` written stably (= 1 at 0)."""
-    return 2.0 / (np.sqrt(1.0 + 0.5 * v * v) + 1.0)
-
-
-def _weight_exp(v: np.ndarray) -> np.ndarray:
-    """Eq 22b ``exp(-v^2 / 2)``."""
-    return np.exp(-0.5 * v * v)
 
 
 def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
@@ -1031,13 +1023,13 @@ def adjust(problem: Problem, options: AdjustOptions | None = None) -> AdjustResu
     rweight = np.ones(m)
     st = _gauss_newton(lay, models, params, ground, active.astype(float), opt, times)
     if opt.robust:
-        kinds = [_weight_l1] * opt.robust_l1_iterations + [
-            _weight_exp
+        kinds = [weight_l1] * opt.robust_l1_iterations + [
+            weight_exp
         ] * opt.robust_exp_iterations
         for rnd, wfun in enumerate(
             kinds
         ):  # weights are recomputed for every observation in every round
-            raw, sig = _robust_scale(lay, st, trimmed=wfun is _weight_exp and rnd > 0)
+            raw, sig = _robust_scale(lay, st, trimmed=wfun is weight_exp and rnd > 0)
             rweight = wfun(raw / sig)
             active = rweight >= opt.robust_min_weight
             rweight[~active] = 0.0

@@ -11,7 +11,6 @@ import dask.array as da
 import numpy as np
 
 from ..kernels.polynomial import PolyMap
-from ..kernels.resample import sample, window_for
 from ..scene import WindowReader
 from ..status import Status
 
@@ -31,18 +30,10 @@ def polynomial_displacement(mapping: PolyMap, chunks: tuple[tuple[int, ...], tup
     return dx, dy
 
 
-def _resample_block(dx, dy, block_info=None, *, reader: WindowReader, method: str, nbands: int):
+def _resample_block(dx, dy, block_info=None, *, reader: WindowReader, method: str):
     (r0, r1), (c0, c1) = block_info[0]["array-location"]
     ys, xs = np.mgrid[r0:r1, c0:c1].astype(np.float64)
-    px = xs + dx
-    py = ys + dy
-    out = np.full((nbands, r1 - r0, c1 - c0), np.nan, dtype=np.float32)
-    win = window_for(px, py, method=method, shape=reader.shape[1:])
-    if win is None:
-        return out
-    wr0, wr1, wc0, wc1 = win
-    window = reader.read(wr0, wr1, wc0, wc1)
-    return sample(window, px - wc0, py - wr0, method=method)
+    return reader.sample(xs + dx, ys + dy, method=method)
 
 
 def resample(reader: WindowReader, dx: da.Array, dy: da.Array, *, method: str = "bilinear") -> da.Array:
@@ -60,7 +51,7 @@ def resample(reader: WindowReader, dx: da.Array, dy: da.Array, *, method: str = 
     return da.map_blocks(
         _resample_block, dx, dy,
         new_axis=0, chunks=((nbands,), *dx.chunks), dtype=np.float32,
-        reader=reader, method=method, nbands=nbands,
+        reader=reader, method=method,
     )
 
 

@@ -24,7 +24,6 @@ import xarray as xr
 from affine import Affine
 
 from ..geometry import pixel_to_world, world_to_pixel
-from ..kernels.resample import sample, window_for
 from ..runtime import dask_client
 from ..scene import WindowReader, commit_store, ingest, open_scene, temporary_path
 from ..simulate.airborne import AirborneScanner, Attitude, asas, atm, caesar
@@ -99,11 +98,7 @@ def _ground_block(block_info=None, *, sensor, terrain, to_crs):
 def _image_block(ground, block_info=None, *, reader, transform, method, radiometry, dynamic_range, seed):
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
     px, py = world_to_pixel(transform, ground[0], ground[1])
-    out = np.full((reader.shape[0], r1 - r0, c1 - c0), np.nan, dtype=np.float32)
-    win = window_for(px, py, method=method, shape=reader.shape[1:])
-    if win is not None:
-        w0, w1, v0, v1 = win
-        out = sample(reader.read(w0, w1, v0, v1), px - v0, py - w0, method=method)
+    out = reader.sample(px, py, method=method)
     rad = radiometry
     rng = np.random.default_rng([seed, r0, c0])  # the same tile always gets the same noise
     noisy = rad.gain * out + rad.offset * dynamic_range + rng.normal(0.0, rad.noise * dynamic_range, out.shape)
