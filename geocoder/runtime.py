@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Any, Iterator
 
-from distributed import Client, LocalCluster
+import dask
+from distributed import Client, LocalCluster, as_completed
+
+from .errors import GeocoderError
 
 log = logging.getLogger(__name__)
+
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
 
 
 def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "auto") -> LocalCluster:
@@ -19,23 +25,74 @@ def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "a
     one thread (and one BLAS thread).
     """
     n = n_workers or max(1, os.cpu_count() or 1)
-    env = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
     return LocalCluster(
         n_workers=n,
         threads_per_worker=1,
         processes=True,
         memory_limit=memory_limit,
         dashboard_address=":0",
-        env=env,
+        env=dict(THREAD_ENV),
     )
+
+
+def connect(scheduler: str, *, timeout: float = 60) -> Client:
+    """A client of a running cluster.
+
+    ``scheduler`` is an address (``tcp://host:8786``, ``tls://...``; TLS certificates come
+    from Dask's configuration, ``DASK_DISTRIBUTED__COMM__TLS__*``) or the ``cluster.json``
+    written by ``geocoder cluster up`` (address and certificates).
+    """
+    security = None
+    address = scheduler
+    if os.path.isfile(scheduler):
+        try:
+            with open(scheduler) as f:
+                info = json.load(f)
+            address = info["address"]
+        except (OSError, ValueError, KeyError) as exc:
+            raise GeocoderError(f"{scheduler}: not a cluster file written by 'geocoder cluster up' ({exc})") from None
+        if info.get("tls"):
+            from .certs import client_security
+
+            security = client_security(info["tls"])
+    try:
+        client = Client(address, security=security, timeout=timeout)
+    except (OSError, TimeoutError) as exc:
+        raise GeocoderError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+    try:
+        check_versions(client)
+    except BaseException:
+        client.close()
+        raise
+    return client
+
+
+def _geocoder_version() -> str:
+    import geocoder
+
+    return geocoder.__version__
+
+
+def check_versions(client: Client, *, wait: float = 60) -> None:
+    """Fail with a clear message unless the workers run this client's geocoder version."""
+    try:
+        client.wait_for_workers(1, timeout=wait)
+    except TimeoutError:
+        raise GeocoderError(f"the scheduler {client.scheduler.address} has no workers (waited {wait:.0f} s)") from None
+    mine = _geocoder_version()
+    theirs = client.run(_geocoder_version)
+    wrong = {w: v for w, v in theirs.items() if v != mine}
+    if wrong:
+        listed = ", ".join(f"{w} has {v}" for w, v in sorted(wrong.items()))
+        raise GeocoderError(f"geocoder version mismatch: this client has {mine}; {listed}")
 
 
 @contextmanager
 def dask_client(client: Client | None = None, scheduler: str | None = None, n_workers: int | None = None) -> Iterator[Client]:
     """Yield a client that is the current default for ``.compute()`` inside the block.
 
-    Order of choice: ``client``; ``scheduler`` (an address); ``DASK_SCHEDULER_ADDRESS``;
-    otherwise a new local cluster that is closed on exit.
+    Order of choice: ``client``; ``scheduler`` (an address or a ``cluster.json``);
+    ``DASK_SCHEDULER_ADDRESS``; otherwise a new local cluster that is closed on exit.
     """
     if client is not None:
         with client.as_current():
@@ -43,9 +100,46 @@ def dask_client(client: Client | None = None, scheduler: str | None = None, n_wo
         return
     address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
     if address:
-        with Client(address) as c, c.as_current():
+        with connect(address) as c, c.as_current():
+            log.info("Dask scheduler %s; dashboard %s", c.scheduler.address, c.dashboard_link)
             yield c
         return
     with local_cluster(n_workers) as cluster, Client(cluster) as c, c.as_current():
         log.info("local Dask cluster with %d workers; dashboard %s", len(cluster.workers), c.dashboard_link)
         yield c
+
+
+def current_client() -> Client | None:
+    """The distributed client of the running job, if any."""
+    try:
+        from distributed import default_client
+
+        return default_client()
+    except ValueError:
+        return None
+
+
+def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
+    """Compute ``tasks`` (key -> dask collection) together; yield ``(key, result)`` as each finishes.
+
+    On a distributed client the tasks share one graph (common inputs computed once) and
+    results arrive in completion order; without one they are computed together by the
+    current Dask scheduler and yielded in key order.
+    """
+    if not tasks:
+        return
+    keys = list(tasks)
+    client = current_client()
+    if client is None:
+        values = dask.compute(*tasks.values())
+        yield from zip(keys, values)
+        return
+    futures = client.compute(list(tasks.values()))
+    index = {id(f): k for f, k in zip(futures, keys)}
+    try:
+        for fut in as_completed(futures):
+            yield index[id(fut)], fut.result()
+            fut.release()
+    finally:
+        for f in futures:
+            f.cancel()

@@ -20,6 +20,7 @@ from ..match.correspondence import CorrespondenceOptions, TileMatchStats, corres
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
 from ..tiles import Tile, TileGrid
+from .job import Job, run_tiles
 
 
 def _subset(points: InterestPoints, mask: np.ndarray) -> InterestPoints:
@@ -72,11 +73,14 @@ def match_tiles(
     dist_band: int = 0,
     opts: CorrespondenceOptions = CorrespondenceOptions(),
     guided: bool = False,
+    job: Job | None = None,
+    stage: str = "correspondence",
 ) -> tuple[TiePoints, list[TileMatchStats]]:
     """Match every tile in parallel: point pairs (seed 000 sec. 4.4) or, with ``guided``,
     least squares from the prediction (:func:`~geocoder.match.correspondence.correspond_guided`)."""
     dshape = dist_reader.shape[1:]
-    tasks = []
+    token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dist_band, predict.coef, opts, guided)
+    tasks = {}
     for tile in grid:
         inside = tile.contains(base_points.x, base_points.y)
         if not inside.any():
@@ -87,13 +91,12 @@ def match_tiles(
         if dwin[0] >= dwin[1] or dwin[2] >= dwin[3]:
             continue
         dsel = (dist_points.y >= dwin[0]) & (dist_points.y < dwin[1]) & (dist_points.x >= dwin[2]) & (dist_points.x < dwin[3])
-        tasks.append(
-            dask.delayed(_tile_task, pure=True, name=f"correspond-{tile.key}-{dask.base.tokenize(predict.coef, opts, guided)}")(
-                tile, base_reader, dist_reader, band, dist_band,
-                _subset(base_points, inside), _subset(dist_points, dsel), predict, dwin, opts, guided,
-            )
+        tasks[tile.key] = dask.delayed(_tile_task, pure=True)(
+            tile, base_reader, dist_reader, band, dist_band,
+            _subset(base_points, inside), _subset(dist_points, dsel), predict, dwin, opts, guided,
+            dask_key_name=f"correspond-{tile.key}-{token}",
         )
-    results = dask.compute(*tasks)
+    results = list(run_tiles(job, f"{stage}-{token[:12]}", tasks, phase=stage).values())
     tps = TiePoints.concatenate([r[0] for r in results])
     return tps, [r[1] for r in results]
 

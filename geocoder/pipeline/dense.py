@@ -9,6 +9,13 @@ without reading any image), or until ``max_rounds``, which is reported.
 
 Each task reads its base window and the distorted window the polynomial says it needs
 straight from the Zarr stores; memory per task depends on the tile size only.
+
+The state is double-buffered: every tile has two slots, a task reads the slot of its last
+finished round and writes the other, and the driver flips a tile's slot only once the
+round is over. So a task that runs twice (its worker died, or the whole job was killed
+and rerun) reads the same input and writes the same output: the result does not depend on
+failures. With a :class:`~geocoder.pipeline.job.Job`, the round's seeds and slots are
+stored at the start of every round and each tile's result when it finishes.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
 from ..tiles import Tile, TileGrid
 from .correspond import distorted_window
+from .job import Job, run_tiles
 
 log = logging.getLogger(__name__)
 
@@ -65,13 +73,14 @@ class DenseResult:
     rounds: int
     converged: bool
     new_per_round: list[int]
+    slots: np.ndarray
 
 
 def create_state(path: str, shape: tuple[int, int], tile: int) -> None:
-    """Empty state store: ``fields`` (12, H, W) float32 NaN and ``code`` (H, W) int8 -1."""
+    """Empty state store of two slots: ``fields`` (2, 12, H, W) float32 NaN and ``code`` (2, H, W) int8 -1."""
     g = zarr.open_group(path, mode="w", zarr_format=3)
-    g.create_array("fields", shape=(NFIELDS, *shape), chunks=(NFIELDS, tile, tile), dtype="float32", fill_value=np.nan)
-    g.create_array("code", shape=shape, chunks=(tile, tile), dtype="int8", fill_value=UNVISITED)
+    g.create_array("fields", shape=(2, NFIELDS, *shape), chunks=(1, NFIELDS, tile, tile), dtype="float32", fill_value=np.nan)
+    g.create_array("code", shape=(2, *shape), chunks=(1, tile, tile), dtype="int8", fill_value=UNVISITED)
 
 
 def seeds_from_tiepoints(tp: TiePoints, mapping: PolyMap) -> np.ndarray:
@@ -103,17 +112,21 @@ def _route(seeds: np.ndarray, grid: TileGrid, exclude: str | None = None) -> dic
 
 
 def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, dist_reader: WindowReader,
-               band: int, dist_band: int, state: str, mapping: PolyMap, opts: DenseOptions):
+               band: int, dist_band: int, state: str, slot: int, mapping: PolyMap, opts: DenseOptions):
+    """Grow one tile from ``seeds``: reads slot ``slot`` of its core, writes slot ``1 - slot``.
+
+    Returns ``(new matches, outgoing halo seeds, whether the other slot was written)``.
+    """
     h, w = shape
     g = zarr.open_group(state, mode="r+")
-    core_code = g["code"][tile.row0 : tile.row1, tile.col0 : tile.col1]
+    core_code = g["code"][slot, tile.row0 : tile.row1, tile.col0 : tile.col1]
     rows = seeds[:, 0].astype(np.int64) - tile.row0
     cols = seeds[:, 1].astype(np.int64) - tile.col0
     incore = (rows >= 0) & (rows < core_code.shape[0]) & (cols >= 0) & (cols < core_code.shape[1])
     useful = ~incore.copy()
     useful[incore] = core_code[rows[incore], cols[incore]] != 0
     if not useful.any():
-        return 0, np.empty((0, 10))
+        return 0, np.empty((0, 10)), False
     # growth region (global), and the base window around it with the template margin
     rr0, rr1, rc0, rc1 = tile.window(opts.halo)
     rr0, rr1, rc0, rc1 = max(rr0, 0), min(rr1, h), max(rc0, 0), min(rc1, w)
@@ -129,7 +142,7 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     code = np.full(base.shape, UNVISITED, dtype=np.int8)
     cr, cc = tile.row0 - wr0, tile.col0 - wc0
     csl = (slice(cr, cr + tile.row1 - tile.row0), slice(cc, cc + tile.col1 - tile.col0))
-    core_fields = g["fields"][:, tile.row0 : tile.row1, tile.col0 : tile.col1].astype(np.float64)
+    core_fields = g["fields"][slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1].astype(np.float64)
     ys, xs = np.mgrid[tile.row0 : tile.row1, tile.col0 : tile.col1]
     core_fields[0] += xs - dc0  # stored as displacement, used as distorted-window position
     core_fields[1] += ys - dr0
@@ -145,19 +158,19 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
                       lattice_origin=(-wr0 % opts.step, -wc0 % opts.step), neighbours=opts.neighbours,
                       max_tries=opts.max_tries)
     if new == 0:
-        return 0, np.empty((0, 10))
+        return 0, np.empty((0, 10)), False
     out = np.moveaxis(params[csl], -1, 0).copy()
     out[0] -= xs - dc0
     out[1] -= ys - dr0
-    g["fields"][:, tile.row0 : tile.row1, tile.col0 : tile.col1] = out.astype(np.float32)
-    g["code"][tile.row0 : tile.row1, tile.col0 : tile.col1] = code[csl]
+    g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out.astype(np.float32)
+    g["code"][1 - slot, tile.row0 : tile.row1, tile.col0 : tile.col1] = code[csl]
     # matches made in the halo are the neighbours' seeds for the next round
     halo = code == 0
     halo[csl] = False
     hr, hc = np.nonzero(halo)
     p = params[hr, hc]
     outgoing = np.column_stack([hr + wr0, hc + wc0, p[:, 0] + dc0, p[:, 1] + dr0, p[:, 2:8]])
-    return new, outgoing
+    return new, outgoing, True
 
 
 def grow_tiles(
@@ -171,40 +184,76 @@ def grow_tiles(
     band: int = 0,
     dist_band: int = 0,
     opts: DenseOptions = DenseOptions(),
+    job: Job | None = None,
 ) -> DenseResult:
-    """Run the halo-exchange rounds; the matches end up in the ``state`` store."""
+    """Run the halo-exchange rounds; the matches end up in the ``state`` store.
+
+    With a ``job``, a rerun continues from the round (and the tiles of it) where an
+    earlier run stopped.
+    """
     shape = (grid.height, grid.width)
-    create_state(state, shape, grid.rows[0])
     tiles = {t.key: t for t in grid}
-    pending = _route(seeds, grid)
-    per_round: list[int] = []
-    for rnd in range(opts.max_rounds):
+    start = next((r for r in range(opts.max_rounds, -1, -1) if job is not None and job.done(f"dense-round-{r}")), None)
+    if start is None:
+        create_state(state, shape, grid.rows[0])
+        start, pending, slots, per_round = 0, _route(seeds, grid), {k: 0 for k in tiles}, []
+        if job is not None:
+            job.save("dense-round-0", (pending, slots, per_round))
+    else:
+        pending, slots, per_round = job.load(f"dense-round-{start}")
+    for rnd in range(start, opts.max_rounds):
         if not pending:
-            return DenseResult(state, rnd, True, per_round)
+            return DenseResult(state, rnd, True, per_round, _slot_grid(grid, slots))
         keys = sorted(pending)
-        tasks = [
-            dask.delayed(_grow_task, pure=False, name=f"grow-{k}-r{rnd}-{dask.base.tokenize(state)}")(
-                tiles[k], pending[k], shape, base_reader, dist_reader, band, dist_band, state, mapping, opts
+        token = dask.base.tokenize(state, slots, rnd)
+        tasks = {
+            k: dask.delayed(_grow_task, pure=False)(
+                tiles[k], pending[k], shape, base_reader, dist_reader, band, dist_band, state, slots[k], mapping, opts,
+                dask_key_name=f"grow-{k}-r{rnd}-{token}",
             )
             for k in keys
-        ]
-        results = dask.compute(*tasks)
-        per_round.append(int(sum(r[0] for r in results)))
+        }
+        results = run_tiles(job, f"dense-r{rnd}", tasks, phase=f"dense matching (round {rnd + 1})")
+        per_round = [*per_round, int(sum(r[0] for r in results.values()))]
         log.info("dense round %d: %d tiles, %d new matches", rnd, len(keys), per_round[-1])
         nxt: dict[str, list[np.ndarray]] = {}
-        for k, (_, outgoing) in zip(keys, results):
+        slots = dict(slots)
+        for k in keys:
+            _, outgoing, wrote = results[k]
+            if wrote:
+                slots[k] = 1 - slots[k]
             for dest, s in _route(outgoing, grid, exclude=k).items():
                 nxt.setdefault(dest, []).append(s)
         pending = {k: np.concatenate(v) for k, v in nxt.items()}
-    return DenseResult(state, opts.max_rounds, not pending, per_round)
+        if job is not None:
+            job.save(f"dense-round-{rnd + 1}", (pending, slots, per_round))
+    return DenseResult(state, opts.max_rounds, not pending, per_round, _slot_grid(grid, slots))
 
 
-def state_arrays(state: str, tile: int) -> dict[str, da.Array]:
-    """The state store as dask arrays: every ALSC field (``x``/``y`` as ``dx``/``dy``) and ``code``."""
+def _slot_grid(grid: TileGrid, slots: dict[str, int]) -> np.ndarray:
+    out = np.zeros((len(grid.rows), len(grid.cols)), dtype=np.int8)
+    for t in grid:
+        out[t.iy, t.ix] = slots[t.key]
+    return out
+
+
+def state_arrays(state: str, slots: np.ndarray, tile: int) -> dict[str, da.Array]:
+    """The state store as dask arrays, every tile from its current slot: every ALSC field
+    (``x``/``y`` as ``dx``/``dy``) and ``code``."""
     g = zarr.open_group(state, mode="r")
-    fields = da.from_zarr(g["fields"], chunks=(NFIELDS, tile, tile))
-    out = {("dx" if n == "x" else "dy" if n == "y" else n): fields[i] for i, n in enumerate(FIELDS)}
-    out["code"] = da.from_zarr(g["code"], chunks=(tile, tile))
+    fields = da.from_zarr(g["fields"], chunks=(1, NFIELDS, tile, tile))
+    code = da.from_zarr(g["code"], chunks=(1, tile, tile))
+    edges = [np.r_[0, np.cumsum(c)] for c in (fields.chunks[2], fields.chunks[3])]
+
+    def pick(arr: da.Array) -> da.Array:
+        return da.block([
+            [arr[int(slots[i, j]), ..., edges[0][i] : edges[0][i + 1], edges[1][j] : edges[1][j + 1]] for j in range(slots.shape[1])]
+            for i in range(slots.shape[0])
+        ])
+
+    f = pick(fields)
+    out = {("dx" if n == "x" else "dy" if n == "y" else n): f[i] for i, n in enumerate(FIELDS)}
+    out["code"] = pick(code)
     return out
 
 
@@ -215,7 +264,7 @@ def _postfilter_block(block: np.ndarray, options) -> np.ndarray:
     return np.stack([dx, dy, status.astype(np.float32)])
 
 
-def dense_field(state: str, tile: int, fallback: tuple[da.Array, da.Array], postfilter_options) -> dict[str, da.Array]:
+def dense_field(result: DenseResult, tile: int, fallback: tuple[da.Array, da.Array], postfilter_options) -> dict[str, da.Array]:
     """Final displacement and quality arrays from the state store (lazy).
 
     Matched pixels go through the scan-line post-filter (blunders removed, short holes
@@ -225,7 +274,7 @@ def dense_field(state: str, tile: int, fallback: tuple[da.Array, da.Array], post
     from ..quality.postfilter import halo
     from ..status import Status
 
-    st = state_arrays(state, tile)
+    st = state_arrays(result.store, result.slots, tile)
     matched = st["code"] == 0
     status = da.where(matched, np.float32(Status.MATCHED), np.float32(Status.NO_TEXTURE))
     stack = da.stack([da.where(matched, st["dx"], np.nan), da.where(matched, st["dy"], np.nan), status]).astype(np.float32)

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..kernels.interest import InterestPoints, foerstner, select_points
 from ..tiles import TileGrid
+from .job import Job, run_tiles
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,12 @@ def _points_block(block, origin, core, width, w_min, opts: InterestOptions) -> I
     )
 
 
-def interest_points(image: da.Array, opts: InterestOptions = InterestOptions()) -> InterestPoints:
+def _w_sum(block: np.ndarray) -> tuple[float, int]:
+    good = block > 0
+    return float(block[good].astype(np.float64).sum()), int(good.sum())
+
+
+def interest_points(image: da.Array, opts: InterestOptions = InterestOptions(), *, job: Job | None = None, name: str = "image") -> InterestPoints:
     """Interest points of a 2-D dask array (one band), gathered as one small table.
 
     Parameters
@@ -57,6 +63,10 @@ def interest_points(image: da.Array, opts: InterestOptions = InterestOptions()) 
         Grey values, NaN = nodata. Its chunks are the tiles; chunk sizes must be multiples
         of ``opts.cell`` (except the last) for tiling-independent thinning.
     opts : InterestOptions
+    job : Job, optional
+        Where finished tiles are kept (a rerun skips them).
+    name : str
+        Name of the image in the job's stages and the progress phases.
 
     Returns
     -------
@@ -70,18 +80,25 @@ def interest_points(image: da.Array, opts: InterestOptions = InterestOptions()) 
     for size in (*grid.rows[:-1], *grid.cols[:-1]):
         if size % opts.cell:
             raise ValueError(f"tile size {size} is not a multiple of the interest cell {opts.cell}")
+    # pass 1: the mean interest value over the whole image (the seed's threshold is global)
     depth1 = opts.window // 2 + 1
-    wmap = image.map_overlap(_w_only, depth=depth1, boundary="none", dtype=np.float32, window=opts.window)
-    total, count = dask.compute(da.where(wmap > 0, wmap, 0).astype(np.float64).sum(), (wmap > 0).sum())
+    wmap = image.map_overlap(_w_only, depth=depth1, boundary="none", dtype=np.float32, window=opts.window).to_delayed()
+    keys = [f"{iy}-{ix}" for iy in range(wmap.shape[0]) for ix in range(wmap.shape[1])]
+    sums = run_tiles(job, f"interest-mean-{name}",
+                     {k: dask.delayed(_w_sum)(wmap[int(k.split("-")[0]), int(k.split("-")[1])]) for k in keys},
+                     phase=f"interest points ({name}, 1/2)")
+    total = sum(s for s, _ in sums.values())
+    count = sum(c for _, c in sums.values())
     if count == 0:
         return InterestPoints.concatenate([])
-    w_min = opts.f * float(total) / float(count)
+    w_min = opts.f * total / count
+    # pass 2: points per tile, thinned on the global cell grid
     depth = opts.halo
     blocks = da.overlap.overlap(image, depth={0: depth, 1: depth}, boundary="none").to_delayed()
-    tasks = []
+    tasks = {}
     for iy in range(blocks.shape[0]):
         for ix in range(blocks.shape[1]):
             r0, c0, core = grid.overlapped_origin(iy, ix, depth)
-            tasks.append(dask.delayed(_points_block, pure=True)(blocks[iy, ix], (r0, c0), core, w, w_min, opts))
-    parts = dask.compute(*tasks)
-    return InterestPoints.concatenate(list(parts))
+            tasks[f"{iy}-{ix}"] = dask.delayed(_points_block, pure=True)(blocks[iy, ix], (r0, c0), core, w, w_min, opts)
+    parts = run_tiles(job, f"interest-{name}", tasks, phase=f"interest points ({name}, 2/2)")
+    return InterestPoints.concatenate(list(parts.values()))

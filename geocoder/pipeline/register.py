@@ -10,29 +10,33 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 
+import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ..errors import InputError, MatchingError
+from .. import progress
+from ..errors import GeocoderError, InputError, MatchingError
 from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
+from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
-from ..scene import WindowReader, commit_store, ingest, open_scene, temporary_path
+from ..scene import WindowReader, commit_store, ingest, open_scene
 from ..status import Status, legend
 from ..tiles import TileGrid
 from .coarse import coarse_alignment
 from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points
+from .job import Job, file_identity, fingerprint
 from .resample import model_status, polynomial_displacement, resample
 
 log = logging.getLogger("geocoder")
@@ -91,6 +95,7 @@ class RegisterSummary:
     dense_new_per_round: list = field(default_factory=list)
     status_counts: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
+    job: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         total = sum(self.seconds.values())
@@ -105,6 +110,8 @@ class RegisterSummary:
                 if self.dense_rounds else []
             ),
             *(["pixels: " + ", ".join(f"{k} {v}" for k, v in self.status_counts.items())] if self.status_counts else []),
+            *([f"resumed: {self.job['skipped']} of {self.job['tile_tasks']} tile tasks finished earlier, "
+                f"at most {self.job['recomputed']} ({self.job['recomputed_fraction']:.1%}) computed again"] if self.job.get("resumed") else []),
             f"time: {total:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in self.seconds.items()) + ")",
         ]
 
@@ -148,19 +155,23 @@ def find_tiepoints(
     opts: RegisterOptions,
     summary: RegisterSummary,
     timer,
+    job: Job | None = None,
 ) -> tuple[TiePoints, PolyMap, CoarseAlignment]:
     """Coarse alignment, interest points and correspondence passes; gathered tie points."""
+    def cached(stage, make):
+        return make() if job is None else job.cached(stage, make)
+
     band = opts.band - 1
     dband = (opts.dist_band or opts.band) - 1
     with timer("coarse alignment"):
-        coarse = coarse_alignment(base, dist, band=band, dist_band=dband, use_georeference=opts.use_georeference)
+        coarse = cached("coarse", lambda: coarse_alignment(base, dist, band=band, dist_band=dband, use_georeference=opts.use_georeference))
     summary.coarse_method = f"{coarse.method} (pyramid 1/{coarse.factor}, peak {coarse.peak:.2f})"
     base_shape = (base.sizes["y"], base.sizes["x"])
     dist_shape = (dist.sizes["y"], dist.sizes["x"])
     _check_overlap(coarse.mapping, base_shape, dist_shape, base.attrs["source"], dist.attrs["source"])
     with timer("interest points"):
-        bpts = interest_points(base.data[band], opts.interest)
-        dpts = interest_points(dist.data[dband], opts.interest)
+        bpts = interest_points(base.data[band], opts.interest, job=job, name="base")
+        dpts = interest_points(dist.data[dband], opts.interest, job=job, name="distorted")
     summary.base_points, summary.distorted_points = len(bpts), len(dpts)
     for pts, scene in ((bpts, base), (dpts, dist)):
         if len(pts) < opts.min_tiepoints:
@@ -172,10 +183,11 @@ def find_tiepoints(
     with timer("correspondence"):
         # pass 1: pairs of interest points (seed 000 sec. 4.4); if the images defeat it but
         # the coarse alignment is a full affine, match from the coarse prediction instead
-        found, _ = match_tiles(base_reader, dist_reader, grid, bpts, dpts, predict, band=band, dist_band=dband, opts=copts)
+        match = partial(match_tiles, base_reader, dist_reader, grid, bpts, dpts, band=band, dist_band=dband, opts=copts, job=job)
+        found, _ = match(predict, stage="correspondence (pass 1)")
         summary.pass_tiepoints.append(len(found))
         if len(found) < opts.min_tiepoints and coarse.method.endswith("+affine"):
-            found, _ = match_tiles(base_reader, dist_reader, grid, bpts, dpts, predict, band=band, dist_band=dband, opts=copts, guided=True)
+            found, _ = match(predict, guided=True, stage="correspondence (pass 1, guided)")
             summary.pass_tiepoints.append(len(found))
         if len(found) < opts.min_tiepoints:
             raise MatchingError(
@@ -183,8 +195,8 @@ def find_tiepoints(
             )
         tp, mapping = fit_global(found, order=opts.order)
         # later passes: every base point matched from the fitted polynomial
-        for _ in range(1, opts.passes):
-            found, _ = match_tiles(base_reader, dist_reader, grid, bpts, dpts, mapping, band=band, dist_band=dband, opts=copts, guided=True)
+        for i in range(1, opts.passes):
+            found, _ = match(mapping, guided=True, stage=f"correspondence (pass {i + 1})")
             summary.pass_tiepoints.append(len(found))
             if len(found) < opts.min_tiepoints:
                 break
@@ -213,6 +225,8 @@ def register(
     nodata: float | None = None,
     dist_nodata: float | None = None,
     options: RegisterOptions | None = None,
+    resume: bool = True,
+    show_progress: Progress | bool | None = None,
 ) -> xr.Dataset:
     """Register ``distorted`` onto the grid of ``base``.
 
@@ -239,6 +253,12 @@ def register(
         Extra nodata values for inputs that do not declare theirs.
     options : RegisterOptions, optional
         All other options; the keywords above override it.
+    resume : bool
+        Continue the unfinished job writing ``out`` (same inputs, options and version):
+        tiles finished by an earlier, interrupted run are not computed again. False
+        starts afresh.
+    show_progress : Progress or bool, optional
+        Progress receiver (True: a bar per phase on standard error).
 
     Returns
     -------
@@ -265,31 +285,39 @@ def register(
             raise InputError(scene.attrs.get("source"), f"has {scene.sizes['band']} band(s); band {b} does not exist")
     summary = RegisterSummary(base=bscene.attrs.get("source", "base"), distorted=dscene.attrs.get("source", "distorted"))
     timer = _Timer(summary)
-    work = tempfile.mkdtemp(prefix=".geocoder-work-", dir=os.path.dirname(os.path.abspath(out)) if out else None)
-    tmp_out = temporary_path(out) if out else None
+    if out is not None:
+        job = Job(job_directory(out), _job_key(base, distorted, bscene, dscene, opts, nodata, dist_nodata))
+        if not resume and job.resumed:
+            job.remove()
+            job = Job(job_directory(out), job.key)
+    else:
+        job = Job(tempfile.mkdtemp(prefix=".geocoder-job-"), "in-memory")
+    if job.resumed:
+        log.info("resuming the job in %s", job.path)
+    finished = False
     try:
-        with dask_client(client, scheduler) as c:
+        with progress.reporting(show_progress), dask_client(client, scheduler) as c:
+            progress.current().message(f"Dask dashboard: {c.dashboard_link}")
             with timer("ingest"):
-                bscene = ingest(bscene, os.path.join(work, "base.zarr"), tile=opts.tile, client=c)
-                dscene = ingest(dscene, os.path.join(work, "distorted.zarr"), tile=opts.tile, client=c)
-            breader = WindowReader(os.path.join(work, "base.zarr"))
-            dreader = WindowReader(os.path.join(work, "distorted.zarr"))
-            tp, mapping, coarse = find_tiepoints(bscene, dscene, breader, dreader, opts, summary, timer)
+                bscene = _ingest(job, "base", bscene, opts.tile, c)
+                dscene = _ingest(job, "distorted", dscene, opts.tile, c)
+            breader = WindowReader(job.file("base.zarr"))
+            dreader = WindowReader(job.file("distorted.zarr"))
+            tp, mapping, coarse = find_tiepoints(bscene, dscene, breader, dreader, opts, summary, timer, job)
             chunks = bscene.data.chunks[1:]
+            grid = TileGrid.from_chunks(chunks)
             dx, dy = polynomial_displacement(mapping, chunks)
             extra = {}
             if opts.dense:
                 with timer("dense matching"):
-                    grid = TileGrid.from_chunks(chunks)
-                    state = os.path.join(work, "dense.zarr")
                     result = grow_tiles(
-                        breader, dreader, grid, seeds_from_tiepoints(tp, mapping), mapping, state,
-                        band=opts.band - 1, dist_band=(opts.dist_band or opts.band) - 1, opts=opts.matching,
+                        breader, dreader, grid, seeds_from_tiepoints(tp, mapping), mapping, job.file("dense.zarr"),
+                        band=opts.band - 1, dist_band=(opts.dist_band or opts.band) - 1, opts=opts.matching, job=job,
                     )
                 summary.dense_rounds = result.rounds
                 summary.dense_converged = result.converged
                 summary.dense_new_per_round = result.new_per_round
-                field_ = dense_field(state, opts.tile, (dx, dy), opts.postfilter)
+                field_ = dense_field(result, opts.tile, (dx, dy), opts.postfilter)
                 dx, dy = field_["dx"], field_["dy"]
                 extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
             registered = resample(dreader, dx, dy, method=opts.resampling)
@@ -300,28 +328,102 @@ def register(
             with timer("resampling"):
                 if out is None:
                     ds = ds.compute()
+                    counts = np.bincount(ds.status.values.ravel(), minlength=len(Status))
                 else:
-                    ds.to_zarr(tmp_out, mode="w", zarr_format=3, consolidated=False, compute=False).compute()
-            written = ds.status if out is None else xr.open_zarr(tmp_out, consolidated=False).status
-            counts = np.bincount(np.asarray(written.values).ravel(), minlength=len(Status))
+                    store = job.file("output.zarr")
+                    if not job.done("output-created"):
+                        ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
+                        job.save("output-created")
+                    counts = write_tiles(ds, store, grid, job)
             summary.status_counts = {Status(i).name.lower(): int(n) for i, n in enumerate(counts) if n}
+            summary.job = job.report()
             ds.attrs["summary"] = json.dumps(asdict(summary))
             if out is None:
                 ds.attrs["tiepoints"] = _tiepoint_dataset(tp)
+                finished = True
                 return ds
-            _tiepoint_dataset(tp).to_zarr(tmp_out, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
+            _tiepoint_dataset(tp).to_zarr(store, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
             import zarr
 
-            zarr.open_group(tmp_out, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
-            commit_store(tmp_out, out)
-    except BaseException:
-        if tmp_out:
-            shutil.rmtree(tmp_out, ignore_errors=True)
+            zarr.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
+            commit_store(store, out)
+            finished = True
+    except GeocoderError:
+        finished = True  # bad input or no match: a rerun would fail the same way, keep nothing
         raise
     finally:
-        shutil.rmtree(work, ignore_errors=True)
-    result = xr.open_zarr(out, decode_coords="all", consolidated=False)
-    return result
+        # an interrupted job keeps its directory so that a rerun resumes; an in-memory one never resumes
+        if finished or out is None:
+            job.remove()
+    return xr.open_zarr(out, decode_coords="all", consolidated=False)
+
+
+def job_directory(out: str) -> str:
+    """Where the job writing ``out`` keeps its finished work until ``out`` is committed."""
+    p = os.path.abspath(out)
+    return os.path.join(os.path.dirname(p), f".{os.path.basename(p)}.geocoder-job")
+
+
+def _job_key(base, distorted, bscene, dscene, opts: RegisterOptions, nodata, dist_nodata) -> str:
+    def identity(src, scene):
+        if isinstance(src, xr.DataArray):
+            return dask.base.tokenize(scene.data)
+        return file_identity(os.fspath(src)) if os.path.exists(os.fspath(src)) else os.fspath(src)
+
+    import geocoder
+
+    return fingerprint(
+        base=identity(base, bscene), distorted=identity(distorted, dscene), options=repr(opts),
+        nodata=[nodata, dist_nodata], version=geocoder.__version__,
+    )
+
+
+def _ingest(job: Job, name: str, scene: xr.DataArray, tile: int, client) -> xr.DataArray:
+    path = job.file(f"{name}.zarr")
+    stage = f"ingest-{name}"
+    ntiles = len(TileGrid.regular(scene.sizes["y"], scene.sizes["x"], tile))
+    source = scene.attrs.get("source", name)
+    if job.done(stage) and os.path.isdir(path):
+        job.count(stage, run=0, skipped=ntiles)
+        reopened = open_scene(path, chunks=tile)
+    else:
+        job.note_unfinished(ntiles)
+        bar = progress.current()
+        bar.phase(f"ingest ({name})", 1)
+        reopened = ingest(scene, path, tile=tile, client=client)
+        bar.advance()
+        bar.close()
+        job.count(stage, run=ntiles, skipped=0)
+        job.save(stage)
+    reopened.attrs["source"] = source
+    return reopened
+
+
+def _write_tile(store: str, window: tuple[int, int, int, int], names: tuple[str, ...], *blocks: np.ndarray) -> np.ndarray:
+    import zarr
+
+    r0, r1, c0, c1 = window
+    g = zarr.open_group(store, mode="r+")
+    for name, block in zip(names, blocks):
+        g[name][..., r0:r1, c0:c1] = block
+    status = blocks[names.index("status")]
+    return np.bincount(np.asarray(status).ravel(), minlength=len(Status))
+
+
+def write_tiles(ds: xr.Dataset, store: str, grid: TileGrid, job: Job) -> np.ndarray:
+    """Compute every output tile and write all its variables into their Zarr regions.
+
+    Each tile is one task (sharing the graph upstream); a finished tile is recorded by the
+    job, so a rerun writes only the missing ones. Returns the status counts.
+    """
+    names = tuple(ds.data_vars)
+    blocks = {n: ds[n].data.to_delayed(optimize_graph=False) for n in names}
+    tasks = {}
+    for t in grid:
+        parts = [blocks[n][(0, t.iy, t.ix) if ds[n].ndim == 3 else (t.iy, t.ix)] for n in names]
+        tasks[t.key] = dask.delayed(_write_tile, pure=True)(store, (t.row0, t.row1, t.col0, t.col1), names, *parts)
+    done = job.run_tiles("output", tasks, phase="resampling and writing")
+    return np.sum(list(done.values()), axis=0)
 
 
 def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse: CoarseAlignment, opts: RegisterOptions, extra: dict) -> xr.Dataset:

@@ -1,0 +1,209 @@
+"""A job's working directory: what is finished, so that a rerun skips it.
+
+A job keeps a manifest (``manifest.json``: the job's fingerprint, the finished stages and
+the tile counts of the last run) and the results of every finished tile and stage as
+files written atomically (temporary name, then rename). The tile-parallel stages go
+through :meth:`Job.run_tiles`, which skips tiles whose result is on disk and stores each
+new result the moment its task finishes; so a job killed at any point loses at most the
+tiles that were running. A rerun with a different fingerprint (other inputs, options or
+version) starts afresh.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import re
+import shutil
+import tempfile
+import time
+from typing import Any, Callable
+
+from .. import progress
+from ..runtime import compute_as_completed
+
+MANIFEST = "manifest.json"
+
+
+def _atomic_write(path: str, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(path))
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def fingerprint(**parts: Any) -> str:
+    """A stable hash of the job's identity (inputs with their size and time, options, version)."""
+    text = json.dumps(parts, sort_keys=True, default=repr)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def file_identity(path: str) -> dict:
+    """Absolute path, size and modification time of a file (or of a Zarr store's metadata)."""
+    path = os.path.abspath(path)
+    probe = path
+    if os.path.isdir(path):
+        for name in ("zarr.json", ".zgroup", ".zarray"):
+            if os.path.exists(os.path.join(path, name)):
+                probe = os.path.join(path, name)
+                break
+    st = os.stat(probe)
+    return {"path": path, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+class Job:
+    """The working directory of one job.
+
+    Parameters
+    ----------
+    path : str
+        Directory (created if needed).
+    key : str
+        The job's fingerprint; a directory holding another job's files is emptied.
+    """
+
+    def __init__(self, path: str, key: str) -> None:
+        self.path = os.path.abspath(path)
+        self.key = key
+        manifest = self._read_manifest()
+        if manifest is not None and manifest.get("fingerprint") != key:
+            shutil.rmtree(self.path)
+            manifest = None
+        os.makedirs(self.path, exist_ok=True)
+        self.resumed = manifest is not None and bool(manifest.get("stages"))
+        self.manifest = manifest or {"fingerprint": key, "created": time.time(), "stages": {}}
+        self.tiles: dict[str, dict[str, int]] = {}
+        self.recomputed = 0
+        self._interrupted_found = not self.resumed
+        self._write_manifest()
+
+    # -- manifest ---------------------------------------------------------------------------
+    def _read_manifest(self) -> dict | None:
+        try:
+            with open(os.path.join(self.path, MANIFEST)) as f:
+                return json.load(f)
+        except (OSError, ValueError):
+            return None
+
+    def _write_manifest(self) -> None:
+        self.manifest["tiles"] = self.tiles
+        _atomic_write(os.path.join(self.path, MANIFEST), json.dumps(self.manifest, indent=1).encode())
+
+    def file(self, *parts: str) -> str:
+        """A path inside the working directory (parent directories created)."""
+        p = os.path.join(self.path, *parts)
+        os.makedirs(os.path.dirname(p), exist_ok=True)
+        return p
+
+    # -- whole-stage results ----------------------------------------------------------------
+    def done(self, stage: str) -> bool:
+        """Whether ``stage`` finished in this or an earlier run."""
+        return stage in self.manifest["stages"]
+
+    def save(self, stage: str, value: Any = None, **info: Any) -> None:
+        """Store a stage's result and mark it finished."""
+        _atomic_write(self.file("stages", f"{stage}.pkl"), pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+        self.manifest["stages"][stage] = {"finished": time.time(), **info}
+        self._write_manifest()
+
+    def load(self, stage: str) -> Any:
+        """The stored result of a finished stage."""
+        with open(os.path.join(self.path, "stages", f"{stage}.pkl"), "rb") as f:
+            return pickle.load(f)
+
+    def cached(self, stage: str, make: Callable[[], Any], *, tiles: int = 0) -> Any:
+        """``make()`` once: a rerun loads the stored result. ``tiles`` counts its tile tasks."""
+        if self.done(stage):
+            self.count(stage, run=0, skipped=tiles)
+            return self.load(stage)
+        self.note_unfinished(tiles)
+        value = make()
+        self.count(stage, run=tiles, skipped=0)
+        self.save(stage, value)
+        return value
+
+    # -- tile results -----------------------------------------------------------------------
+    def run_tiles(self, stage: str, tasks: dict[str, Any], phase: str | None = None) -> dict[str, Any]:
+        """Compute the ``tasks`` (tile key -> dask delayed) not finished earlier.
+
+        Every result is written to disk as soon as its task finishes. Returns all results
+        (earlier and new) by key.
+        """
+        folder = os.path.join(self.path, "tiles", re.sub(r"[^A-Za-z0-9_.-]+", "_", stage).strip("_"))
+        os.makedirs(folder, exist_ok=True)
+        results: dict[str, Any] = {}
+        todo: dict[str, Any] = {}
+        for key, task in tasks.items():
+            p = os.path.join(folder, f"{key}.pkl")
+            if os.path.exists(p):
+                with open(p, "rb") as f:
+                    results[key] = pickle.load(f)
+            else:
+                todo[key] = task
+        if todo:
+            self.note_unfinished(len(todo))
+        self.count(stage, run=len(todo), skipped=len(results))
+        bar = progress.current()
+        bar.phase(phase or stage, len(tasks), skipped=len(results))
+        for key, value in compute_as_completed(todo):
+            _atomic_write(os.path.join(folder, f"{key}.pkl"), pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+            results[key] = value
+            bar.advance()
+        bar.close()
+        self._write_manifest()
+        return {k: results[k] for k in tasks}
+
+    def note_unfinished(self, n: int) -> None:
+        """A stage with ``n`` tile tasks was not finished before this run.
+
+        On a rerun, the first such stage is where the earlier run stopped: its tiles that
+        run now may have been started before (an upper bound of the work done twice).
+        """
+        if not self._interrupted_found:
+            self._interrupted_found = True
+            self.recomputed += n
+
+    def count(self, stage: str, *, run: int, skipped: int) -> None:
+        """Count tile tasks of ``stage`` run now and skipped (finished earlier)."""
+        c = self.tiles.setdefault(stage, {"run": 0, "skipped": 0})
+        c["run"] += run
+        c["skipped"] += skipped
+
+    def report(self) -> dict:
+        """Tile tasks run and skipped in this run, and the fraction possibly computed twice."""
+        run = sum(c["run"] for c in self.tiles.values())
+        skipped = sum(c["skipped"] for c in self.tiles.values())
+        total = run + skipped
+        return {
+            "resumed": self.resumed,
+            "tile_tasks": total,
+            "run": run,
+            "skipped": skipped,
+            "recomputed": self.recomputed if self.resumed else 0,
+            "recomputed_fraction": (self.recomputed / total) if (self.resumed and total) else 0.0,
+        }
+
+    def remove(self) -> None:
+        """Delete the working directory (after the job's output is committed)."""
+        shutil.rmtree(self.path, ignore_errors=True)
+
+
+def run_tiles(job: Job | None, stage: str, tasks: dict[str, Any], phase: str | None = None) -> dict[str, Any]:
+    """:meth:`Job.run_tiles` when there is a job; otherwise compute with progress, nothing stored."""
+    if job is not None:
+        return job.run_tiles(stage, tasks, phase)
+    bar = progress.current()
+    bar.phase(phase or stage, len(tasks))
+    results = {}
+    for key, value in compute_as_completed(tasks):
+        results[key] = value
+        bar.advance()
+    bar.close()
+    return {k: results[k] for k in tasks}
