@@ -1,4 +1,4 @@
-"""Command line: ``geocoder register | ingest | simulate | adjust | demo``.
+"""Command line: ``geocoder register | ingest | simulate | adjust | demo | cluster up|down``.
 
 Every command calls the same library functions a notebook would; ``--scheduler`` (default
 ``DASK_SCHEDULER_ADDRESS``) chooses a running Dask cluster, otherwise a local one is started.
@@ -43,7 +43,7 @@ scheduler_option = click.option(
     "--scheduler",
     envvar="DASK_SCHEDULER_ADDRESS",
     default=None,
-    help="Dask scheduler address (default: $DASK_SCHEDULER_ADDRESS, else a local cluster).",
+    help="Dask scheduler address or the cluster.json of 'geocoder cluster up' (default: $DASK_SCHEDULER_ADDRESS, else a local cluster).",
 )
 tile_option = click.option("--tile", default=512, show_default=True, type=int, help="Tile (chunk) size in pixels.")
 
@@ -52,9 +52,14 @@ tile_option = click.option("--tile", default=512, show_default=True, type=int, h
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for Dask's too).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
 @click.version_option(package_name="geocoder")
-def main(verbose: int, quiet: bool) -> None:
+@click.pass_context
+def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
     """Tile-parallel sub-pixel registration and geocoding of scanner imagery."""
     _setup_logging(verbose, quiet)
+    from .progress import reporting
+
+    # progress bars (named phases, tiles done) on standard error unless --quiet
+    ctx.with_resource(reporting(not quiet))
 
 
 @main.command()
@@ -69,16 +74,22 @@ def main(verbose: int, quiet: bool) -> None:
 @click.option("--dense/--no-dense", default=True, show_default=True, help="Match every pixel, or stop at the polynomial.")
 @click.option("--nodata", default=None, type=float, help="Extra nodata value of BASE.")
 @click.option("--dist-nodata", default=None, type=float, help="Extra nodata value of DISTORTED.")
+@click.option("--restart", is_flag=True, help="Do not resume an interrupted run of the same job; start afresh.")
 @scheduler_option
 @_friendly
-def register(base, distorted, out, resampling, tile, band, dist_band, order, dense, nodata, dist_nodata, scheduler):
-    """Register DISTORTED onto the grid of BASE and write OUT (Zarr)."""
+def register(base, distorted, out, resampling, tile, band, dist_band, order, dense, nodata, dist_nodata, restart, scheduler):
+    """Register DISTORTED onto the grid of BASE and write OUT (Zarr).
+
+    An interrupted run leaves its finished tiles next to OUT; running the same command
+    again resumes from them (--restart starts afresh).
+    """
     from .pipeline.register import register as run
 
     t0 = time.perf_counter()
     ds = run(
         base, distorted, out=out, resampling=resampling, tile=tile, scheduler=scheduler,
         band=band, dist_band=dist_band, order=order, dense=dense, nodata=nodata, dist_nodata=dist_nodata,
+        resume=not restart,
     )
     _print_summary(ds, time.perf_counter() - t0, out)
 
@@ -180,6 +191,43 @@ def simulate(kind, ortho, dem, out, seed, band, sensor, tilt, rows, turbulence, 
         f"wrote {out}: {kind} {ds.attrs['sensor_class']} image {ds.sizes['y']} x {ds.sizes['x']} px, "
         f"{ds.sizes['band']} band(s); truth ground_x/ground_y/ground_z in the ortho's CRS"
     )
+
+
+@main.group()
+def cluster() -> None:
+    """Start or stop a Dask cluster (scheduler + worker processes) on this machine."""
+
+
+dir_option = click.option("--dir", "directory", default=None,
+                          help="Directory of cluster.json, logs and certificates (default $GEOCODER_CLUSTER_DIR or ~/.geocoder/cluster).")
+
+
+@cluster.command("up")
+@click.option("--workers", default=2, show_default=True, type=click.IntRange(1), help="Worker processes (one thread each).")
+@click.option("--tls", is_flag=True, help="TLS with certificates made for this cluster; clients need them (cluster.json points to them).")
+@click.option("--memory-limit", default="auto", show_default=True, help="Memory limit per worker (Dask syntax).")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Interface the scheduler listens on.")
+@click.option("--port", default=0, show_default=True, help="Scheduler port (0: any free one).")
+@dir_option
+@_friendly
+def cluster_up(workers, tls, memory_limit, host, port, directory):
+    """Start a scheduler and WORKERS worker processes with the geocoder preload; print the address."""
+    from .cluster import up
+
+    info = up(workers, directory=directory, tls=tls, memory_limit=memory_limit, host=host, port=port)
+    for line in info.lines():
+        click.echo(line)
+
+
+@cluster.command("down")
+@dir_option
+@_friendly
+def cluster_down(directory):
+    """Stop the cluster started by 'geocoder cluster up'."""
+    from .cluster import down
+
+    info = down(directory)
+    click.echo("no cluster was running" if info is None else f"stopped {info.address} and {len(info.worker_pids)} worker(s)")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,0 +1,227 @@
+"""``geocoder cluster up|down``: a real Dask cluster on this machine, as on a cluster's nodes.
+
+``up`` starts one ``dask scheduler`` and N ``dask worker`` processes (each under a nanny,
+one thread, the worker preload of ``workers/``), optionally with TLS between all of them
+(certificates made by :mod:`geocoder.certs`), waits for the workers and writes
+``cluster.json`` (address, dashboard, process ids, certificate directory) into its
+directory. Pass that file, or the address, to ``--scheduler``. ``down`` shuts the
+cluster down and removes the file. The processes outlive the command that started them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from .errors import GeocoderError
+from .runtime import THREAD_ENV
+
+CLUSTER_FILE = "cluster.json"
+
+
+def default_directory() -> str:
+    """``$GEOCODER_CLUSTER_DIR``, else ``~/.geocoder/cluster``."""
+    return os.environ.get("GEOCODER_CLUSTER_DIR") or os.path.join(os.path.expanduser("~"), ".geocoder", "cluster")
+
+
+def preload_script() -> str | None:
+    """The worker preload of the source tree (``workers/geocoder_preload.py``), if present."""
+    p = Path(__file__).resolve().parents[1] / "workers" / "geocoder_preload.py"
+    return str(p) if p.exists() else None
+
+
+@dataclass
+class ClusterInfo:
+    """What ``cluster up`` wrote to ``cluster.json``."""
+
+    address: str
+    dashboard: str
+    directory: str
+    scheduler_pid: int
+    worker_pids: list[int] = field(default_factory=list)
+    tls: str | None = None
+    started: float = 0.0
+
+    @property
+    def file(self) -> str:
+        return os.path.join(self.directory, CLUSTER_FILE)
+
+    def lines(self) -> list[str]:
+        return [
+            f"scheduler {self.address} with {len(self.worker_pids)} worker(s){' (TLS)' if self.tls else ''}",
+            f"dashboard {self.dashboard}",
+            f"use it: geocoder register ... --scheduler {self.file}",
+            *([] if self.tls else [f"     or: export DASK_SCHEDULER_ADDRESS={self.address}"]),
+            f"stop it: geocoder cluster down{'' if self.directory == default_directory() else ' --dir ' + self.directory}",
+        ]
+
+
+def _dask_command() -> list[str]:
+    exe = shutil.which("dask", path=str(Path(sys.executable).parent))
+    return [exe] if exe else [sys.executable, "-m", "dask"]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def read_info(directory: str | None = None) -> ClusterInfo | None:
+    """The running cluster's description in ``directory``, or None."""
+    path = os.path.join(directory or default_directory(), CLUSTER_FILE)
+    try:
+        with open(path) as f:
+            return ClusterInfo(**json.load(f))
+    except FileNotFoundError:
+        return None
+    except (ValueError, TypeError) as exc:
+        raise GeocoderError(f"{path}: not a cluster file ({exc})") from None
+
+
+def up(workers: int = 2, *, directory: str | None = None, tls: bool = False, memory_limit: str = "auto",
+       host: str = "127.0.0.1", port: int = 0, dashboard_port: int = 0, timeout: float = 120.0) -> ClusterInfo:
+    """Start a scheduler and ``workers`` worker processes; return their description.
+
+    Parameters
+    ----------
+    workers : int
+        Number of worker processes (one thread each).
+    directory : str, optional
+        Where ``cluster.json``, the logs and the certificates go (default :func:`default_directory`).
+    tls : bool
+        Encrypt and authenticate every connection with certificates made here.
+    memory_limit : str
+        Per-worker memory limit (Dask syntax).
+    host, port, dashboard_port : str, int, int
+        Where the scheduler listens (0 = a free port).
+    timeout : float
+        Seconds to wait for the scheduler and all workers.
+    """
+    directory = os.path.abspath(directory or default_directory())
+    old = read_info(directory)
+    if old is not None and _alive(old.scheduler_pid):
+        raise GeocoderError(f"a cluster is already running from {old.file} ({old.address}); run 'geocoder cluster down' first")
+    os.makedirs(directory, exist_ok=True)
+    sched_file = os.path.join(directory, "scheduler.json")
+    if os.path.exists(sched_file):
+        os.unlink(sched_file)
+    env = dict(os.environ, **THREAD_ENV)
+    dask_yaml = Path(__file__).resolve().parents[1] / "workers" / "dask.yaml"
+    if dask_yaml.exists():
+        env.setdefault("DASK_CONFIG", str(dask_yaml))
+    cmd = _dask_command()
+    tls_dir = None
+    proto_args: list[str] = []
+    if tls:
+        from .certs import make_certificates, role_args
+
+        tls_dir = os.path.join(directory, "tls")
+        make_certificates(tls_dir, names=("localhost", "127.0.0.1", host))
+        proto_args = ["--protocol", "tls"]
+    procs: list[subprocess.Popen] = []
+
+    def spawn(args: list[str], log_name: str) -> subprocess.Popen:
+        log = open(os.path.join(directory, log_name), "w")
+        p = subprocess.Popen(args, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        log.close()
+        procs.append(p)
+        return p
+
+    try:
+        sched = spawn(
+            [*cmd, "scheduler", "--host", host, "--port", str(port), "--dashboard-address", f"{host}:{dashboard_port}",
+             "--scheduler-file", sched_file, *proto_args, *(role_args(tls_dir, "scheduler") if tls else [])],
+            "scheduler.log",
+        )
+        _wait(lambda: os.path.exists(sched_file), timeout, "the scheduler to start", directory, sched)
+        preload = preload_script()
+        import geocoder
+
+        worker_args = [
+            "--scheduler-file", sched_file, "--nthreads", "1", "--memory-limit", memory_limit,
+            "--local-directory", os.path.join(directory, "worker-space"),
+            *(role_args(tls_dir, "worker") if tls else []),
+        ]
+        # the preload's own options are the words after it, so it comes last
+        preload_args = ["--preload", preload, f"--geocoder-version={geocoder.__version__}"] if preload else []
+        for i in range(workers):
+            spawn([*cmd, "worker", *worker_args, "--name", f"geocoder-worker-{i}", *preload_args], f"worker-{i}.log")
+        with open(sched_file) as f:
+            address = json.load(f)["address"]
+        info = ClusterInfo(address=address, dashboard="", directory=directory, scheduler_pid=sched.pid,
+                           worker_pids=[p.pid for p in procs[1:]], tls=tls_dir, started=time.time())
+        from distributed import Client
+
+        from .certs import client_security
+
+        with Client(address, security=client_security(tls_dir) if tls else None, timeout=timeout) as c:
+            deadline = time.time() + timeout
+            while len(c.scheduler_info(n_workers=-1)["workers"]) < workers:
+                for p in procs:
+                    if p.poll() is not None:
+                        raise GeocoderError(f"a cluster process exited with code {p.returncode}; see the logs in {directory}")
+                if time.time() > deadline:
+                    raise GeocoderError(f"only {len(c.scheduler_info(n_workers=-1)['workers'])} of {workers} workers started "
+                                        f"within {timeout:.0f} s; see the logs in {directory}")
+                time.sleep(0.2)
+            info.dashboard = c.dashboard_link
+        tmp = info.file + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump(asdict(info), f, indent=1)
+        os.replace(tmp, info.file)
+        return info
+    except BaseException:
+        for p in procs:
+            _terminate(p.pid)
+        raise
+
+
+def _wait(ready, timeout: float, what: str, directory: str, proc: subprocess.Popen) -> None:
+    deadline = time.time() + timeout
+    while not ready():
+        if proc.poll() is not None:
+            raise GeocoderError(f"{what} failed (exit code {proc.returncode}); see the logs in {directory}")
+        if time.time() > deadline:
+            raise GeocoderError(f"timed out waiting for {what}; see the logs in {directory}")
+        time.sleep(0.1)
+
+
+def _terminate(pid: int, grace: float = 10.0) -> None:
+    """SIGTERM the process group of ``pid``, SIGKILL it after ``grace`` seconds."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(pid, sig)
+        except (ProcessLookupError, PermissionError):
+            return
+        deadline = time.time() + grace
+        while time.time() < deadline:
+            try:
+                if os.waitpid(pid, os.WNOHANG)[0] == pid:
+                    return
+            except ChildProcessError:
+                if not _alive(pid):
+                    return
+            time.sleep(0.1)
+
+
+def down(directory: str | None = None) -> ClusterInfo | None:
+    """Stop the cluster described in ``directory``; return what was stopped (None: nothing ran)."""
+    info = read_info(directory)
+    if info is None:
+        return None
+    for pid in [*info.worker_pids, info.scheduler_pid]:
+        _terminate(pid)
+    os.unlink(info.file)
+    return info
