@@ -1,0 +1,109 @@
+"""Per-worker peak memory against scene size, and wall time with 1 and 2 workers.
+
+The whole register job (ingest, interest points, correspondence, dense matching or not,
+resampling, writing) on simulated pairs (procedural ortho + known warp), on a local cluster
+of worker processes. Worker memory is the resident set of every worker process, sampled
+from outside (psutil) every 50 ms, so a busy worker is measured too.
+
+    python benchmarks/bench_cluster.py                       # polynomial 2048/8192, dense 2048/4096
+    python benchmarks/bench_cluster.py --dense-sizes 2048 8192 --workers 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import psutil
+from affine import Affine
+from distributed import Client
+
+from geocoder import register
+from geocoder.runtime import local_cluster
+from geocoder.scene import write_geotiff
+from geocoder.simulate.texture import synthetic_ortho
+from geocoder.simulate.warp import make_pair
+
+
+class WorkerPeak:
+    """Peak resident memory (MiB) of each worker process while the block runs."""
+
+    def __init__(self, pids: list[int], interval: float = 0.05) -> None:
+        self.procs = [psutil.Process(p) for p in pids]
+        self.interval = interval
+        self.peak = dict.fromkeys(pids, 0.0)
+
+    def __enter__(self):
+        self._stop = threading.Event()
+
+        def poll():
+            while not self._stop.is_set():
+                for p in self.procs:
+                    try:
+                        self.peak[p.pid] = max(self.peak[p.pid], p.memory_info().rss / 2**20)
+                    except psutil.Error:
+                        pass
+                self._stop.wait(self.interval)
+
+        self._t = threading.Thread(target=poll, daemon=True)
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._t.join()
+
+
+def make_scene(size: int, work: Path) -> tuple[Path, Path]:
+    base, dist = work / f"base-{size}.tif", work / f"dist-{size}.tif"
+    if not base.exists():
+        margin = 48
+        src = synthetic_ortho((size + 2 * margin,) * 2, seed=11)
+        pair = make_pair(src, shape=(size, size), seed=11, max_displacement=15.0, margin=margin)
+        write_geotiff(base, pair.base, transform=Affine(2, 0, 500000, 0, -2, 4000000), crs="EPSG:32633")
+        write_geotiff(dist, pair.distorted)
+    return base, dist
+
+
+def run(size: int, workers: int, dense: bool, work: Path, tile: int) -> dict:
+    base, dist = make_scene(size, work)
+    out = work / f"out-{size}-{workers}-{dense}.zarr"
+    with local_cluster(workers) as cluster, Client(cluster) as c:
+        pids = list(c.run(os.getpid).values())
+        t0 = time.perf_counter()
+        with WorkerPeak(pids) as mem:
+            register(base, dist, out=out, tile=tile, dense=dense, client=c, resume=False)
+        wall = time.perf_counter() - t0
+    return {"wall": wall, "peak": max(mem.peak.values()), "mpx": size * size / 1e6 / wall}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[2048, 8192], help="scene sides for the polynomial job")
+    ap.add_argument("--dense-sizes", type=int, nargs="*", default=[2048, 4096], help="scene sides for the dense job")
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--tile", type=int, default=512)
+    ap.add_argument("--work", default=None, help="directory for the scenes (default: a temporary one)")
+    args = ap.parse_args()
+    work = Path(args.work or tempfile.mkdtemp(prefix="bench-cluster-"))
+    work.mkdir(parents=True, exist_ok=True)
+    print(f"tile {args.tile}; {os.cpu_count()} cores; scenes in {work}")
+    print("| job | scene | workers | wall s | Mpx/s | peak worker MiB | vs smallest scene |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for dense, sizes in ((False, args.sizes), (True, args.dense_sizes)):
+        first: dict[int, float] = {}
+        for size in sizes:
+            for w in args.workers:
+                r = run(size, w, dense, work, args.tile)
+                first.setdefault(w, r["peak"])
+                print(f"| {'dense' if dense else 'polynomial'} | {size}² | {w} | {r['wall']:.1f} | {r['mpx']:.2f} | "
+                      f"{r['peak']:.0f} | {100 * (r['peak'] / first[w] - 1):+.1f} % |", flush=True)
+    print("\nwall-time ratio 1/2 workers is the row pairs above; memory is the largest worker's peak resident set.")
+
+
+if __name__ == "__main__":
+    main()
