@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from .errors import GeocoderError
-from .runtime import THREAD_ENV
+from .runtime import WORKER_ENV
 
 CLUSTER_FILE = "cluster.json"
 
@@ -117,7 +117,7 @@ def up(workers: int = 2, *, directory: str | None = None, tls: bool = False, mem
     sched_file = os.path.join(directory, "scheduler.json")
     if os.path.exists(sched_file):
         os.unlink(sched_file)
-    env = dict(os.environ, **THREAD_ENV)
+    env = dict(os.environ, **WORKER_ENV)
     dask_yaml = Path(__file__).resolve().parents[1] / "workers" / "dask.yaml"
     if dask_yaml.exists():
         env.setdefault("DASK_CONFIG", str(dask_yaml))

@@ -15,7 +15,11 @@ from .errors import GeocoderError
 
 log = logging.getLogger(__name__)
 
-THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+#: Environment of every worker process: one thread per numeric library (parallelism comes from
+#: tasks) and a bounded GDAL block cache (by default 5 % of the machine's memory, which fills
+#: with every tile read, so a worker's memory would grow with the scene).
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1",
+              "GDAL_CACHEMAX": "16"}
 
 
 def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "auto") -> LocalCluster:
@@ -31,7 +35,7 @@ def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "a
         processes=True,
         memory_limit=memory_limit,
         dashboard_address=":0",
-        env=dict(THREAD_ENV),
+        env=dict(WORKER_ENV),
     )
 
 

@@ -30,6 +30,9 @@ import click
 
 for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(var, "1")
+# GDAL's block cache defaults to 5 % of the machine's memory and fills with every tile read:
+# a worker's memory would grow with the scene. 16 MB is ample for tile-by-tile reads.
+os.environ.setdefault("GDAL_CACHEMAX", "16")
 
 log = logging.getLogger("geocoder.worker")
 

@@ -170,8 +170,8 @@ def find_tiepoints(
     dist_shape = (dist.sizes["y"], dist.sizes["x"])
     _check_overlap(coarse.mapping, base_shape, dist_shape, base.attrs["source"], dist.attrs["source"])
     with timer("interest points"):
-        bpts = interest_points(base.data[band], opts.interest, job=job, name="base")
-        dpts = interest_points(dist.data[dband], opts.interest, job=job, name="distorted")
+        bpts = interest_points(base.data[band], opts.interest, job=job, name="base", reader=base_reader, band=band)
+        dpts = interest_points(dist.data[dband], opts.interest, job=job, name="distorted", reader=dist_reader, band=dband)
     summary.base_points, summary.distorted_points = len(bpts), len(dpts)
     for pts, scene in ((bpts, base), (dpts, dist)):
         if len(pts) < opts.min_tiepoints:
