@@ -7,7 +7,14 @@ import sys
 import numpy as np
 import pytest
 
-from geocoder.adjust.experiments import block_setup, block_table, blunder_case, collinearity_frame, single_frame_table
+from geocoder.adjust.experiments import (
+    block_setup,
+    block_table,
+    blunder_case,
+    collinearity_frame,
+    edge_table,
+    single_frame_table,
+)
 from geocoder.adjust.io import scanner_to_dict, write_observations, write_points
 
 
@@ -34,6 +41,25 @@ def test_blunders_found_and_removed():
     assert r["false_alarms"] < 0.05 * r["tie_observations"]
     assert r["contaminated_rms"] > 1.5 * r["clean_rms"]
     assert r["robust_rms"] == pytest.approx(r["clean_rms"], rel=0.05)
+
+
+def test_table6_edge_geometry_matters_and_three_pairs_replace_a_point():
+    """Seed Table 6 / Figs 5-9: arbitrary angles and random edges are worse at few pairs, all
+    configurations converge as pairs grow, and ~3 edge pairs do the work of a control point.
+    Compared on the error of the adjusted model alone (check points without their own noise)."""
+    rows = edge_table(counts=(25, 81), configurations=(1, 4, 10), replicates=4, reference=(8, 25, 27, 81))
+    m = {(r["configuration"], r["pairs"]): r["model"] for r in rows}
+    assert all(r["converged"] == 4 for r in rows)
+    assert m[4, 25] > 1.15 * m[1, 25]  # arbitrary angles (seed: 105.7 vs 73.2 m check RMS)
+    assert m[10, 25] > 1.15 * m[1, 25]  # arbitrary positions and angles (seed: 211.6)
+    for cfg in (1, 4, 10):
+        assert m[cfg, 81] < 0.7 * m[cfg, 25]  # more pairs help ...
+    spread = [m[c, 81] for c in (1, 4, 10)]
+    assert max(spread) - min(spread) < 0.5 * (max(m[c, 25] for c in (1, 4, 10)) - m[1, 25])  # ... and configurations converge
+    # one random edge pair is worth less than a control point, three are worth about one or more
+    assert m[10, 25] > 1.1 * m[0, 25]
+    assert m[10, 25] == pytest.approx(m[0, 8], rel=0.25)
+    assert m[10, 81] < m[0, 27]
 
 
 def test_adjust_command_from_files(tmp_path):
