@@ -83,7 +83,7 @@ def run(size: int, workers: int, dense: bool, work: Path, tile: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[2048, 8192], help="scene sides for the polynomial job")
+    ap.add_argument("--sizes", type=int, nargs="*", default=[2048, 8192], help="scene sides for the polynomial job")
     ap.add_argument("--dense-sizes", type=int, nargs="*", default=[2048, 4096], help="scene sides for the dense job")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--tile", type=int, default=512)

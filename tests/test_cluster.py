@@ -169,6 +169,7 @@ def test_killed_job_resumes_and_recomputes_few_tiles(pair_dir, reference, launch
     assert r.returncode == 0, r.stderr
     m = re.search(r"resumed: (\d+) of (\d+) tile tasks finished earlier, at most (\d+) \(([\d.]+)%\) computed again", r.stdout)
     assert m, r.stdout
+    print(m[0])
     skipped, total, again, percent = int(m[1]), int(m[2]), int(m[3]), float(m[4])
     assert skipped > total / 2
     assert 0 < again and percent < 10
