@@ -130,12 +130,14 @@ def ingest(src, out, tile, nodata, scheduler):
 @click.option("--out", required=True, help="Output directory.")
 @click.option("--robust", is_flag=True, help="Robust re-weighting (eq 20b, then 22b).")
 @click.option("--snooping", is_flag=True, help="Data snooping with redundancy numbers.")
+@click.option("--scheduler", default=None, envvar="DASK_SCHEDULER_ADDRESS",
+              help="Run the adjustment as one task on this Dask cluster (default: in this process; it is gathered on one node).")
 @_friendly
-def adjust(frames_path, points_path, obs_path, out, robust, snooping):
+def adjust(frames_path, points_path, obs_path, out, robust, snooping, scheduler):
     """Block adjustment (rectification with one frame) from plain files."""
     from .adjust.run import adjust_files
 
-    s = adjust_files(frames_path, points_path, obs_path, out, robust=robust, snooping=snooping)
+    s = adjust_files(frames_path, points_path, obs_path, out, robust=robust, snooping=snooping, scheduler=scheduler)
     click.echo(f"{s['frames']} frame(s), {s['points']} points, {s['observations']} observations, "
                f"{s['rejected']} rejected; sigma0 {s['sigma0']:.3f}; {s['iterations']} iterations")
     if s["check_rms_total_m"] is not None:

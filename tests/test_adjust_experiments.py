@@ -62,7 +62,7 @@ def test_table6_edge_geometry_matters_and_three_pairs_replace_a_point():
     assert m[10, 81] < m[0, 27]
 
 
-def test_adjust_command_from_files(tmp_path):
+def test_adjust_command_from_files(tmp_path, client):
     truths, grid, check, ties, obs = block_setup(size=0.3, strips=2, frames=1, tie_per_overlap=5)
     from geocoder.simulate.points import GroundPoints
 
@@ -91,3 +91,9 @@ def test_adjust_command_from_files(tmp_path):
                           "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv", "--out", out],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "nope.json: no such file" in bad.stderr
+    # the same adjustment gathered on one worker of a cluster
+    from geocoder.adjust.run import adjust_files
+
+    on_worker = adjust_files(tmp_path / "frames.json", tmp_path / "points.csv", tmp_path / "obs.csv", tmp_path / "out2", client=client)
+    assert on_worker["sigma0"] == pytest.approx(s["sigma0"], rel=1e-9)
+    assert on_worker["check_rms_total_m"] == pytest.approx(s["check_rms_total_m"], rel=1e-9)

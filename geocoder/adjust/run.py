@@ -37,12 +37,20 @@ def residual_svg(path: str, xy: np.ndarray, res: np.ndarray, active: np.ndarray,
 
 
 def adjust_files(frames_path: str, points_path: str, obs_path: str, out: str, *, robust: bool = False,
-                 snooping: bool = False, tie_height_sigma: float | None = 15.0) -> dict:
+                 snooping: bool = False, tie_height_sigma: float | None = 15.0, client=None, scheduler: str | None = None) -> dict:
     """Run a block adjustment from files; write ``frames.json``, ``points.csv``,
     ``residuals.csv``, ``report.md`` and ``residuals_frame<k>.svg`` into ``out``.
 
-    Points with role ``check`` are withheld and measured through the adjusted models.
+    Points with role ``check`` are withheld and measured through the adjusted models. The
+    adjustment is gathered on one node: this process, or with ``client`` / ``scheduler`` one
+    task on a worker of that cluster (the files must be on a filesystem the worker sees).
     """
+    if client is not None or scheduler:
+        from ..runtime import dask_client
+
+        with dask_client(client, scheduler) as c:
+            return c.submit(adjust_files, frames_path, points_path, obs_path, out, robust=robust, snooping=snooping,
+                            tie_height_sigma=tie_height_sigma, pure=False).result()
     frames, specs = read_frames(frames_path)
     points = read_points(points_path)
     obs = read_observations(obs_path)
