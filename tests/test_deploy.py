@@ -24,7 +24,6 @@ import sys
 import time
 from contextlib import contextmanager
 from datetime import timedelta
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from unittest import mock
 
@@ -327,7 +326,7 @@ def test_dockerfile():
     assert cmd[:2] == ["dask", "worker"] and cmd[cmd.index("--preload") + 1] == IMAGE_PRELOAD
 
 
-def test_requirements_pinned_to_venv():
+def test_requirements_pinned_and_within_the_projects_bounds():
     pins = {}
     for line in (WORKERS / "requirements.txt").read_text().splitlines():
         line = line.split("#")[0].strip()
@@ -337,19 +336,16 @@ def test_requirements_pinned_to_venv():
             pins[m.group(1).lower()] = m.group(2)
     import tomllib
 
-    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
-    direct = {re.match(r"[A-Za-z0-9_.-]+", d).group(0).lower() for d in deps}
+    from packaging.requirements import Requirement
+
+    deps = [Requirement(d) for d in tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]]
+    direct = {d.name.lower() for d in deps}
     assert direct <= set(pins), f"unpinned direct dependencies: {direct - set(pins)}"
     assert {"numcodecs", "llvmlite", "bokeh", "cryptography"} <= set(pins)
-    checked = 0
-    for name, pinned in pins.items():
-        try:
-            installed = version(name)
-        except PackageNotFoundError:
-            continue  # e.g. bokeh: only in the image
-        assert installed == pinned, f"{name}: requirements.txt pins {pinned}, venv has {installed}"
-        checked += 1
-    assert checked >= len(direct)
+    # the image's pins must satisfy what the project asks for (a fresh `pip install` may
+    # resolve newer releases than the image pins; that is the point of pinning the image)
+    for d in deps:
+        assert d.specifier.contains(pins[d.name.lower()], prereleases=True), f"{d.name}=={pins[d.name.lower()]} violates {d}"
 
 
 # ----------------------------------------------------------------------------- certificates
