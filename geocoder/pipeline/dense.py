@@ -237,31 +237,46 @@ def _slot_grid(grid: TileGrid, slots: dict[str, int]) -> np.ndarray:
     return out
 
 
-def state_arrays(state: str, slots: np.ndarray, tile: int) -> dict[str, da.Array]:
-    """The state store as dask arrays, every tile from its current slot: every ALSC field
-    (``x``/``y`` as ``dx``/``dy``) and ``code``."""
+_OUT_FIELDS = tuple(FIELDS.index(n) for n in ("x", "y", "sigma_x", "sigma_y", "rho"))
+
+
+def _read_state(state: str, slots: np.ndarray, grid: TileGrid, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fields ``x, y, sigma_x, sigma_y, rho`` (5, h, w) and ``code`` (h, w) of a window inside
+    one tile row, every tile's part from its current slot."""
     g = zarr.open_group(state, mode="r")
-    fields = da.from_zarr(g["fields"], chunks=(1, NFIELDS, tile, tile))
-    code = da.from_zarr(g["code"], chunks=(1, tile, tile))
-    edges = [np.r_[0, np.cumsum(c)] for c in (fields.chunks[2], fields.chunks[3])]
+    redges = np.r_[0, np.cumsum(grid.rows)]
+    cedges = np.r_[0, np.cumsum(grid.cols)]
+    iy = int(np.searchsorted(redges, r0, side="right") - 1)
+    fields = np.empty((len(_OUT_FIELDS), r1 - r0, c1 - c0), dtype=np.float32)
+    code = np.empty((r1 - r0, c1 - c0), dtype=np.int8)
+    for ix in range(len(grid.cols)):
+        a, b = max(c0, int(cedges[ix])), min(c1, int(cedges[ix + 1]))
+        if a >= b:
+            continue
+        slot = int(slots[iy, ix])
+        fields[:, :, a - c0 : b - c0] = g["fields"][slot, list(_OUT_FIELDS), r0:r1, a:b]
+        code[:, a - c0 : b - c0] = g["code"][slot, r0:r1, a:b]
+    return fields, code
 
-    def pick(arr: da.Array) -> da.Array:
-        return da.block([
-            [arr[int(slots[i, j]), ..., edges[0][i] : edges[0][i + 1], edges[1][j] : edges[1][j + 1]] for j in range(slots.shape[1])]
-            for i in range(slots.shape[0])
-        ])
 
-    f = pick(fields)
-    out = {("dx" if n == "x" else "dy" if n == "y" else n): f[i] for i, n in enumerate(FIELDS)}
-    out["code"] = pick(code)
-    return out
+def _dense_block(block_info=None, *, state: str, slots: np.ndarray, grid: TileGrid, postfilter_options) -> np.ndarray:
+    from ..quality.postfilter import halo, postfilter
+    from ..status import Status
 
-
-def _postfilter_block(block: np.ndarray, options) -> np.ndarray:
-    from ..quality.postfilter import postfilter
-
-    dx, dy, status = postfilter(block[0], block[1], block[2].astype(np.uint8), options=options)
-    return np.stack([dx, dy, status.astype(np.float32)])
+    (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
+    pad = halo(postfilter_options)  # the post-filter works along scan lines only
+    w0, w1 = max(c0 - pad, 0), min(c1 + pad, grid.width)
+    f, code = _read_state(state, slots, grid, r0, r1, w0, w1)
+    matched = code == 0
+    status = np.where(matched, Status.MATCHED, Status.NO_TEXTURE).astype(np.uint8)
+    dx, dy, status = postfilter(np.where(matched, f[0], np.nan), np.where(matched, f[1], np.nan), status, options=postfilter_options)
+    core = slice(c0 - w0, c0 - w0 + (c1 - c0))
+    sl = (slice(None), core)
+    keep = status[sl] == Status.MATCHED
+    return np.stack([
+        dx[sl], dy[sl], status[sl].astype(np.float32),
+        np.where(keep, f[2][sl], np.nan), np.where(keep, f[3][sl], np.nan), np.where(keep, f[4][sl], np.nan),
+    ]).astype(np.float32)
 
 
 def dense_field(result: DenseResult, tile: int, fallback: tuple[da.Array, da.Array], postfilter_options) -> dict[str, da.Array]:
@@ -269,27 +284,26 @@ def dense_field(result: DenseResult, tile: int, fallback: tuple[da.Array, da.Arr
 
     Matched pixels go through the scan-line post-filter (blunders removed, short holes
     filled along rows, every filled pixel flagged); pixels left without a match take the
-    polynomial's displacement (``fallback``) and keep their flag.
+    polynomial's displacement (``fallback``) and keep their flag. One task per tile reads
+    its rows of the state, with the post-filter's halo along them, straight from the store
+    (every tile from its current slot), so a worker holds one tile's window whatever the
+    scene size.
     """
-    from ..quality.postfilter import halo
     from ..status import Status
 
-    st = state_arrays(result.store, result.slots, tile)
-    matched = st["code"] == 0
-    status = da.where(matched, np.float32(Status.MATCHED), np.float32(Status.NO_TEXTURE))
-    stack = da.stack([da.where(matched, st["dx"], np.nan), da.where(matched, st["dy"], np.nan), status]).astype(np.float32)
-    stack = stack.rechunk((3, tile, tile))
-    filtered = stack.map_overlap(
-        _postfilter_block, depth={0: 0, 1: 0, 2: halo(postfilter_options)}, boundary="none",
-        dtype=np.float32, options=postfilter_options,
+    grid = TileGrid.from_chunks(fallback[0].chunks)
+    stack = da.map_blocks(
+        _dense_block, chunks=((6,), *fallback[0].chunks), dtype=np.float32,
+        state=result.store, slots=result.slots, grid=grid, postfilter_options=postfilter_options,
+        name=f"dense-field-{dask.base.tokenize(result.store, result.slots, postfilter_options)}",
     )
-    dx, dy, status = filtered[0], filtered[1], filtered[2].astype(np.uint8)
+    dx, dy, status = stack[0], stack[1], stack[2].astype(np.uint8)
     good = (status == Status.MATCHED) | (status == Status.FILLED)
     return {
         "dx": da.where(good, dx, fallback[0]).astype(np.float32),
         "dy": da.where(good, dy, fallback[1]).astype(np.float32),
         "status": status,
-        "sigma_x": da.where(status == Status.MATCHED, st["sigma_x"], np.nan).astype(np.float32),
-        "sigma_y": da.where(status == Status.MATCHED, st["sigma_y"], np.nan).astype(np.float32),
-        "correlation": da.where(status == Status.MATCHED, st["rho"], np.nan).astype(np.float32),
+        "sigma_x": stack[3],
+        "sigma_y": stack[4],
+        "correlation": stack[5],
     }
