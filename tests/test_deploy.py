@@ -423,9 +423,7 @@ def test_helm_configured_tls_cluster(certs, helm):
                     with pytest.raises(OSError, match="(?i)certificate"):  # valid TLS, certificate from another CA
                         await refused(s.address, security=Security.temporary())
 
-    t0 = time.perf_counter()
-    asyncio.run(run())
-    assert time.perf_counter() - t0 < 45
+    asyncio.run(run())  # a refused client must fail, not hang: pytest-timeout and the 3 s connect timeout bound it
 
 
 def _subprocess_env(service_env: dict, certs: Path) -> dict:
