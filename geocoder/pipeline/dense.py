@@ -279,7 +279,7 @@ def _dense_block(block_info=None, *, state: str, slots: np.ndarray, grid: TileGr
     ]).astype(np.float32)
 
 
-def dense_field(result: DenseResult, tile: int, fallback: tuple[da.Array, da.Array], postfilter_options) -> dict[str, da.Array]:
+def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfilter_options) -> dict[str, da.Array]:
     """Final displacement and quality arrays from the state store (lazy).
 
     Matched pixels go through the scan-line post-filter (blunders removed, short holes

@@ -150,13 +150,11 @@ class Job:
         if todo:
             self.note_unfinished(len(todo))
         self.count(stage, run=len(todo), skipped=len(results))
-        bar = progress.current()
-        bar.phase(phase or stage, len(tasks), skipped=len(results))
-        for key, value in compute_as_completed(todo):
+
+        def keep(key: str, value: Any) -> None:
             _atomic_write(os.path.join(folder, f"{key}.pkl"), pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
-            results[key] = value
-            bar.advance()
-        bar.close()
+
+        results.update(_compute(todo, phase or stage, total=len(tasks), skipped=len(results), on_result=keep))
         self._write_manifest()
         return {k: results[k] for k in tasks}
 
@@ -195,15 +193,24 @@ class Job:
         shutil.rmtree(self.path, ignore_errors=True)
 
 
+def _compute(tasks: dict[str, Any], phase: str, *, total: int, skipped: int = 0,
+             on_result: Callable[[str, Any], None] | None = None) -> dict[str, Any]:
+    """Compute ``tasks`` with a progress phase; ``on_result`` sees each result as it arrives."""
+    bar = progress.current()
+    bar.phase(phase, total, skipped=skipped)
+    results = {}
+    for key, value in compute_as_completed(tasks):
+        if on_result is not None:
+            on_result(key, value)
+        results[key] = value
+        bar.advance()
+    bar.close()
+    return results
+
+
 def run_tiles(job: Job | None, stage: str, tasks: dict[str, Any], phase: str | None = None) -> dict[str, Any]:
     """:meth:`Job.run_tiles` when there is a job; otherwise compute with progress, nothing stored."""
     if job is not None:
         return job.run_tiles(stage, tasks, phase)
-    bar = progress.current()
-    bar.phase(phase or stage, len(tasks))
-    results = {}
-    for key, value in compute_as_completed(tasks):
-        results[key] = value
-        bar.advance()
-    bar.close()
+    results = _compute(tasks, phase or stage, total=len(tasks))
     return {k: results[k] for k in tasks}

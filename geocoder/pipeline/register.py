@@ -317,7 +317,7 @@ def register(
                 summary.dense_rounds = result.rounds
                 summary.dense_converged = result.converged
                 summary.dense_new_per_round = result.new_per_round
-                field_ = dense_field(result, opts.tile, (dx, dy), opts.postfilter)
+                field_ = dense_field(result, (dx, dy), opts.postfilter)
                 dx, dy = field_["dx"], field_["dy"]
                 extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
             registered = resample(dreader, dx, dy, method=opts.resampling)
