@@ -7,6 +7,7 @@ from outside (psutil) every 50 ms, so a busy worker is measured too.
 
     python benchmarks/bench_cluster.py                       # polynomial 2048/8192, dense 2048/4096
     python benchmarks/bench_cluster.py --dense-sizes 2048 8192 --workers 2
+    python benchmarks/bench_cluster.py --sizes --dense-sizes 2048 1024x8192 --workers 2   # width only
 """
 
 from __future__ import annotations
@@ -58,18 +59,26 @@ class WorkerPeak:
         self._t.join()
 
 
-def make_scene(size: int, work: Path) -> tuple[Path, Path]:
-    base, dist = work / f"base-{size}.tif", work / f"dist-{size}.tif"
+def shape_of(size: str) -> tuple[int, int]:
+    """``"2048"`` -> (2048, 2048); ``"1024x8192"`` -> (rows, columns)."""
+    h, _, w = size.partition("x")
+    return int(h), int(w or h)
+
+
+def make_scene(size: str, work: Path) -> tuple[Path, Path]:
+    h, w = shape_of(size)
+    name = f"{h}" if h == w else f"{h}x{w}"
+    base, dist = work / f"base-{name}.tif", work / f"dist-{name}.tif"
     if not base.exists():
         margin = 48
-        src = synthetic_ortho((size + 2 * margin,) * 2, seed=11)
-        pair = make_pair(src, shape=(size, size), seed=11, max_displacement=15.0, margin=margin)
+        src = synthetic_ortho((h + 2 * margin, w + 2 * margin), seed=11)
+        pair = make_pair(src, shape=(h, w), seed=11, max_displacement=15.0, margin=margin)
         write_geotiff(base, pair.base, transform=Affine(2, 0, 500000, 0, -2, 4000000), crs="EPSG:32633")
         write_geotiff(dist, pair.distorted)
     return base, dist
 
 
-def run(size: int, workers: int, dense: bool, work: Path, tile: int) -> dict:
+def run(size: str, workers: int, dense: bool, work: Path, tile: int) -> dict:
     base, dist = make_scene(size, work)
     out = work / f"out-{size}-{workers}-{dense}.zarr"
     with local_cluster(workers) as cluster, Client(cluster) as c:
@@ -78,13 +87,14 @@ def run(size: int, workers: int, dense: bool, work: Path, tile: int) -> dict:
         with WorkerPeak(pids) as mem:
             register(base, dist, out=out, tile=tile, dense=dense, client=c, resume=False)
         wall = time.perf_counter() - t0
-    return {"wall": wall, "peak": max(mem.peak.values()), "mpx": size * size / 1e6 / wall}
+    h, w = shape_of(size)
+    return {"wall": wall, "peak": max(mem.peak.values()), "mpx": h * w / 1e6 / wall}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="*", default=[2048, 8192], help="scene sides for the polynomial job")
-    ap.add_argument("--dense-sizes", type=int, nargs="*", default=[2048, 4096], help="scene sides for the dense job")
+    ap.add_argument("--sizes", nargs="*", default=["2048", "8192"], help="scene sides (or ROWSxCOLS) for the polynomial job")
+    ap.add_argument("--dense-sizes", nargs="*", default=["2048", "4096"], help="scene sides (or ROWSxCOLS) for the dense job")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--tile", type=int, default=512)
     ap.add_argument("--work", default=None, help="directory for the scenes (default: a temporary one)")
@@ -95,12 +105,12 @@ def main() -> None:
     print("| job | scene | workers | wall s | Mpx/s | peak worker MiB | vs smallest scene |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for dense, sizes in ((False, args.sizes), (True, args.dense_sizes)):
-        first: dict[int, float] = {}
+        first: dict[int, float] = {}  # per worker count: the first scene's peak
         for size in sizes:
             for w in args.workers:
                 r = run(size, w, dense, work, args.tile)
                 first.setdefault(w, r["peak"])
-                print(f"| {'dense' if dense else 'polynomial'} | {size}² | {w} | {r['wall']:.1f} | {r['mpx']:.2f} | "
+                print(f"| {'dense' if dense else 'polynomial'} | {size if 'x' in size else size + '²'} | {w} | {r['wall']:.1f} | {r['mpx']:.2f} | "
                       f"{r['peak']:.0f} | {100 * (r['peak'] / first[w] - 1):+.1f} % |", flush=True)
     print("\nwall-time ratio 1/2 workers is the row pairs above; memory is the largest worker's peak resident set.")
 
