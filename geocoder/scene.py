@@ -9,10 +9,7 @@ half-pixel offset explicit in one place.
 from __future__ import annotations
 
 import os
-import shutil
-import uuid
 import warnings
-from pathlib import Path
 
 import numpy as np
 import rioxarray  # noqa: F401  (registers the .rio accessor)
@@ -20,6 +17,7 @@ import xarray as xr
 import zarr
 from affine import Affine
 
+from . import storage
 from .errors import InputError
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 
@@ -128,23 +126,6 @@ def scene_transform(scene: xr.DataArray) -> Affine | None:
     return scene.rio.transform()
 
 
-def commit_store(tmp: str, final: str) -> None:
-    """Atomically replace ``final`` by the finished store ``tmp`` (same directory)."""
-    if os.path.exists(final):
-        old = f"{final}.old-{uuid.uuid4().hex[:8]}"
-        os.rename(final, old)
-        os.rename(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.rename(tmp, final)
-
-
-def temporary_path(final: str | os.PathLike) -> str:
-    """A sibling path to write into before :func:`commit_store` (hidden, unique)."""
-    p = Path(final)
-    return str(p.with_name(f".{p.name}.partial-{uuid.uuid4().hex[:8]}"))
-
-
 def ingest(
     src: str | os.PathLike | xr.DataArray,
     out: str | os.PathLike,
@@ -157,8 +138,9 @@ def ingest(
     """Write a scene to a Zarr v3 store chunked by tile, CRS and transform kept.
 
     The store holds one array ``image`` (band, y, x), float32, NaN = nodata, chunked
-    ``(bands, tile, tile)``. It is written under a temporary name and renamed when
-    complete, so a killed job never leaves a store that looks finished.
+    ``(bands, tile, tile)``. It is written under a temporary name and committed when
+    complete (:func:`geocoder.storage.commit_store`), so a killed job never leaves a store
+    that looks finished. ``out`` is a local path or any fsspec URL.
 
     Returns
     -------
@@ -167,8 +149,8 @@ def ingest(
     """
     scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands)
     scene = scene.chunk(_chunks(tile))
-    out = os.fspath(out)
-    tmp = temporary_path(out)
+    out = storage.normalize(out)
+    tmp = storage.temporary_sibling(out)
     ds = scene.to_dataset(name=IMAGE_VAR)
     ds[IMAGE_VAR].attrs = {k: v for k, v in scene.attrs.items() if k != "georeferenced"}
     ds[IMAGE_VAR].attrs["georeferenced"] = int(bool(scene.attrs.get("georeferenced")))
@@ -180,9 +162,9 @@ def ingest(
         else:
             delayed.compute()
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        storage.remove(tmp)
         raise
-    commit_store(tmp, out)
+    storage.commit_store(tmp, out)
     reopened = open_scene(out, chunks=tile)
     reopened.attrs["source"] = scene.attrs.get("source", out)
     return reopened

@@ -2,7 +2,8 @@
 
 A job keeps a manifest (``manifest.json``: the job's fingerprint, the finished stages and
 the tile counts of the last run) and the results of every finished tile and stage as
-files written atomically (temporary name, then rename). The tile-parallel stages go
+files written whole (:func:`geocoder.storage.write_bytes`), in a local directory or under
+any fsspec URL. The tile-parallel stages go
 through :meth:`Job.run_tiles`, which skips tiles whose result is on disk and stores each
 new result the moment its task finishes; so a job killed at any point loses at most the
 tiles that were running. A rerun with a different fingerprint (other inputs, options or
@@ -16,27 +17,13 @@ import json
 import os
 import pickle
 import re
-import shutil
-import tempfile
 import time
 from typing import Any, Callable
 
-from .. import progress
+from .. import progress, storage
 from ..runtime import compute_as_completed
 
 MANIFEST = "manifest.json"
-
-
-def _atomic_write(path: str, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(path))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def fingerprint(**parts: Any) -> str:
@@ -45,17 +32,8 @@ def fingerprint(**parts: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
-def file_identity(path: str) -> dict:
-    """Absolute path, size and modification time of a file (or of a Zarr store's metadata)."""
-    path = os.path.abspath(path)
-    probe = path
-    if os.path.isdir(path):
-        for name in ("zarr.json", ".zgroup", ".zarray"):
-            if os.path.exists(os.path.join(path, name)):
-                probe = os.path.join(path, name)
-                break
-    st = os.stat(probe)
-    return {"path": path, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+def _dump(value: Any) -> bytes:
+    return pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
 
 
 class Job:
@@ -64,19 +42,20 @@ class Job:
     Parameters
     ----------
     path : str
-        Directory (created if needed).
+        Directory or fsspec URL (created if needed).
     key : str
         The job's fingerprint; a directory holding another job's files is emptied.
     """
 
     def __init__(self, path: str, key: str) -> None:
-        self.path = os.path.abspath(path)
+        self.path = storage.normalize(path)
         self.key = key
         manifest = self._read_manifest()
         if manifest is not None and manifest.get("fingerprint") != key:
-            shutil.rmtree(self.path)
+            storage.remove(self.path)
             manifest = None
-        os.makedirs(self.path, exist_ok=True)
+        if not storage.is_url(self.path):
+            os.makedirs(self.path, exist_ok=True)
         self.resumed = manifest is not None and bool(manifest.get("stages"))
         self.manifest = manifest or {"fingerprint": key, "created": time.time(), "stages": {}}
         self.tiles: dict[str, dict[str, int]] = {}
@@ -87,19 +66,19 @@ class Job:
     # -- manifest ---------------------------------------------------------------------------
     def _read_manifest(self) -> dict | None:
         try:
-            with open(os.path.join(self.path, MANIFEST)) as f:
-                return json.load(f)
+            return json.loads(storage.read_bytes(storage.join(self.path, MANIFEST)))
         except (OSError, ValueError):
             return None
 
     def _write_manifest(self) -> None:
         self.manifest["tiles"] = self.tiles
-        _atomic_write(os.path.join(self.path, MANIFEST), json.dumps(self.manifest, indent=1).encode())
+        storage.write_bytes(storage.join(self.path, MANIFEST), json.dumps(self.manifest, indent=1).encode())
 
     def file(self, *parts: str) -> str:
-        """A path inside the working directory (parent directories created)."""
-        p = os.path.join(self.path, *parts)
-        os.makedirs(os.path.dirname(p), exist_ok=True)
+        """A location inside the working directory (local parent directories created)."""
+        p = storage.join(self.path, *parts)
+        if not storage.is_url(p):
+            os.makedirs(os.path.dirname(p), exist_ok=True)
         return p
 
     # -- whole-stage results ----------------------------------------------------------------
@@ -109,14 +88,13 @@ class Job:
 
     def save(self, stage: str, value: Any = None, **info: Any) -> None:
         """Store a stage's result and mark it finished."""
-        _atomic_write(self.file("stages", f"{stage}.pkl"), pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+        storage.write_bytes(self.file("stages", f"{stage}.pkl"), _dump(value))
         self.manifest["stages"][stage] = {"finished": time.time(), **info}
         self._write_manifest()
 
     def load(self, stage: str) -> Any:
         """The stored result of a finished stage."""
-        with open(os.path.join(self.path, "stages", f"{stage}.pkl"), "rb") as f:
-            return pickle.load(f)
+        return pickle.loads(storage.read_bytes(storage.join(self.path, "stages", f"{stage}.pkl")))
 
     def cached(self, stage: str, make: Callable[[], Any], *, tiles: int = 0) -> Any:
         """``make()`` once: a rerun loads the stored result. ``tiles`` counts its tile tasks."""
@@ -136,15 +114,13 @@ class Job:
         Every result is written to disk as soon as its task finishes. Returns all results
         (earlier and new) by key.
         """
-        folder = os.path.join(self.path, "tiles", re.sub(r"[^A-Za-z0-9_.-]+", "_", stage).strip("_"))
-        os.makedirs(folder, exist_ok=True)
+        folder = self.file("tiles", re.sub(r"[^A-Za-z0-9_.-]+", "_", stage).strip("_"))
+        finished = storage.list_names(folder)
         results: dict[str, Any] = {}
         todo: dict[str, Any] = {}
         for key, task in tasks.items():
-            p = os.path.join(folder, f"{key}.pkl")
-            if os.path.exists(p):
-                with open(p, "rb") as f:
-                    results[key] = pickle.load(f)
+            if f"{key}.pkl" in finished:
+                results[key] = pickle.loads(storage.read_bytes(storage.join(folder, f"{key}.pkl")))
             else:
                 todo[key] = task
         if todo:
@@ -152,7 +128,7 @@ class Job:
         self.count(stage, run=len(todo), skipped=len(results))
 
         def keep(key: str, value: Any) -> None:
-            _atomic_write(os.path.join(folder, f"{key}.pkl"), pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+            storage.write_bytes(storage.join(folder, f"{key}.pkl"), _dump(value))
 
         results.update(_compute(todo, phase or stage, total=len(tasks), skipped=len(results), on_result=keep))
         self._write_manifest()
@@ -190,7 +166,7 @@ class Job:
 
     def remove(self) -> None:
         """Delete the working directory (after the job's output is committed)."""
-        shutil.rmtree(self.path, ignore_errors=True)
+        storage.remove(self.path)
 
 
 def _compute(tasks: dict[str, Any], phase: str, *, total: int, skipped: int = 0,

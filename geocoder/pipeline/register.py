@@ -20,7 +20,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from .. import progress
+from .. import progress, storage
 from ..errors import GeocoderError, InputError, MatchingError
 from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
@@ -29,14 +29,14 @@ from ..match.tiepoints import TiePoints
 from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
-from ..scene import WindowReader, commit_store, ingest, open_scene
+from ..scene import WindowReader, ingest, open_scene
 from ..status import Status, legend
 from ..tiles import TileGrid
 from .coarse import coarse_alignment
 from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points
-from .job import Job, file_identity, fingerprint
+from .job import Job, fingerprint
 from .resample import model_status, polynomial_displacement, resample
 
 log = logging.getLogger("geocoder")
@@ -235,7 +235,9 @@ def register(
     base, distorted : str, PathLike or xarray.DataArray
         GeoTIFF/COG/Zarr paths (or scenes from :func:`geocoder.open_scene`).
     out : str or PathLike, optional
-        Zarr store to write (atomically). Without it the result is computed into memory.
+        Zarr store to write: a local path or any fsspec URL (``s3://bucket/scene.zarr``),
+        committed atomically. The job's working files live beside it (see
+        :func:`job_directory`). Without it the result is computed into memory.
     resampling : {"nearest", "bilinear", "cubic", "lanczos"}
         Interpolator of the single resampling.
     tile : int
@@ -274,9 +276,8 @@ def register(
     )
     opts.validate()
     if out is not None:
-        out = os.fspath(out)
-        parent = os.path.dirname(os.path.abspath(out))
-        if not os.path.isdir(parent):
+        out = storage.normalize(out)
+        if not storage.is_url(out) and not os.path.isdir(os.path.dirname(out)):
             raise InputError(out, "the output's parent directory does not exist")
     bscene = base if isinstance(base, xr.DataArray) else open_scene(base, chunks=tile, nodata=nodata)
     dscene = distorted if isinstance(distorted, xr.DataArray) else open_scene(distorted, chunks=tile, nodata=dist_nodata)
@@ -286,10 +287,7 @@ def register(
     summary = RegisterSummary(base=bscene.attrs.get("source", "base"), distorted=dscene.attrs.get("source", "distorted"))
     timer = _Timer(summary)
     if out is not None:
-        job = Job(job_directory(out), _job_key(base, distorted, bscene, dscene, opts, nodata, dist_nodata))
-        if not resume and job.resumed:
-            job.remove()
-            job = Job(job_directory(out), job.key)
+        job = _open_job(out, _job_key(base, distorted, bscene, dscene, opts, nodata, dist_nodata), resume)
     else:
         job = Job(tempfile.mkdtemp(prefix=".geocoder-job-"), "in-memory")
     if job.resumed:
@@ -346,7 +344,7 @@ def register(
             import zarr
 
             zarr.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
-            commit_store(store, out)
+            storage.commit_store(store, out)
             finished = True
     except GeocoderError:
         finished = True  # bad input or no match: a rerun would fail the same way, keep nothing
@@ -359,16 +357,33 @@ def register(
 
 
 def job_directory(out: str) -> str:
-    """Where the job writing ``out`` keeps its finished work until ``out`` is committed."""
-    p = os.path.abspath(out)
-    return os.path.join(os.path.dirname(p), f".{os.path.basename(p)}.geocoder-job")
+    """Where the job writing ``out`` keeps its finished work until ``out`` is committed.
+
+    Beside ``out`` on the same filesystem (local directory or object-store prefix).
+    """
+    out = storage.normalize(out)
+    return storage.sibling(out, f".{storage.split(out)[1]}.geocoder-job")
+
+
+def _open_job(out: str, key: str, resume: bool) -> Job:
+    try:
+        job = Job(job_directory(out), key)
+        if not resume and job.resumed:
+            job.remove()
+            job = Job(job_directory(out), key)
+    except OSError as exc:  # no such bucket, no permission, unreachable endpoint ...
+        raise InputError(out, f"cannot write the job's files beside the output ({type(exc).__name__}: {exc})") from None
+    return job
 
 
 def _job_key(base, distorted, bscene, dscene, opts: RegisterOptions, nodata, dist_nodata) -> str:
     def identity(src, scene):
         if isinstance(src, xr.DataArray):
             return dask.base.tokenize(scene.data)
-        return file_identity(os.fspath(src)) if os.path.exists(os.fspath(src)) else os.fspath(src)
+        try:
+            return storage.identity(os.fspath(src))
+        except OSError:
+            return os.fspath(src)
 
     import geocoder
 
@@ -383,7 +398,7 @@ def _ingest(job: Job, name: str, scene: xr.DataArray, tile: int, client) -> xr.D
     stage = f"ingest-{name}"
     ntiles = len(TileGrid.regular(scene.sizes["y"], scene.sizes["x"], tile))
     source = scene.attrs.get("source", name)
-    if job.done(stage) and os.path.isdir(path):
+    if job.done(stage) and storage.is_store(path):
         job.count(stage, run=0, skipped=ntiles)
         reopened = open_scene(path, chunks=tile)
     else:

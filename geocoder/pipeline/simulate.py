@@ -25,10 +25,11 @@ from affine import Affine
 
 from ..geometry import pixel_to_world, world_to_pixel
 from ..runtime import dask_client
-from ..scene import WindowReader, commit_store, ingest, open_scene, temporary_path
+from ..scene import WindowReader, ingest, open_scene
 from ..simulate.airborne import AirborneScanner, Attitude, asas, atm, caesar
 from ..simulate.satellite import LineScanner, ecef_to_geodetic, landsat_mss_like
 from ..simulate.terrain import Terrain, fractal_dem
+from ..storage import commit_store, temporary_sibling
 
 AIRBORNE = {"atm": atm, "caesar": caesar, "asas": asas}
 
@@ -266,7 +267,7 @@ def _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, t
         sensor_model = satellite_over(scene, pixel=pixel, seed=seed)
         to_crs = EcefToCrs(scene.rio.crs.to_wkt())
         terrain_fn = GeodeticTerrain(terrain, to_crs)
-    tmp = temporary_path(out)
+    tmp = temporary_sibling(out)
     try:
         with dask_client(client, scheduler) as c:
             ingested = ingest(scene, os.path.join(work, "ortho.zarr"), tile=tile, client=c)

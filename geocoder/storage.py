@@ -1,0 +1,200 @@
+"""Where a job's files live: a local directory or any fsspec URL (``s3://``, ``gs://``, ...).
+
+Locations are plain strings, so that they pickle to workers: a local path (made absolute)
+or a URL. Filesystems come from :func:`fsspec.core.url_to_fs`, so credentials and
+endpoints come from fsspec's configuration (``FSSPEC_S3_ENDPOINT_URL``, ``AWS_*``, an
+fsspec config file), which the client and every worker must share.
+
+Two guarantees hold on every filesystem:
+
+* :func:`write_bytes` is all or nothing: a temporary file renamed on local disks, one PUT
+  on object stores.
+* :func:`commit_store` makes a finished Zarr store appear at its final location only when
+  complete. A local directory is renamed into place. Object stores cannot rename: the store's
+  objects are copied on the server, the root ``zarr.json`` last; until that object exists
+  there is no Zarr store at the final location (a reader fails), never a partial one.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import uuid
+
+import fsspec
+
+ROOT_METADATA = "zarr.json"
+
+
+def is_url(location: str | os.PathLike) -> bool:
+    """Whether ``location`` is a URL of a filesystem other than the local one."""
+    s = os.fspath(location)
+    return "://" in s and not s.startswith(("file://", "local://"))
+
+
+def normalize(location: str | os.PathLike) -> str:
+    """A local path made absolute (``file://`` stripped), or the URL without a trailing slash."""
+    s = os.fspath(location)
+    if s.startswith(("file://", "local://")):
+        s = s.split("://", 1)[1]
+    return s.rstrip("/") if is_url(s) else os.path.abspath(s)
+
+
+def _fs(location: str) -> tuple[fsspec.AbstractFileSystem, str]:
+    return fsspec.core.url_to_fs(location)
+
+
+def join(location: str, *parts: str) -> str:
+    """``location`` / ``parts``."""
+    if is_url(location):
+        return "/".join([location.rstrip("/"), *parts])
+    return os.path.join(location, *parts)
+
+
+def split(location: str) -> tuple[str, str]:
+    """Parent location and name."""
+    if is_url(location):
+        parent, _, name = location.rstrip("/").rpartition("/")
+        return parent, name
+    p = os.path.abspath(location)
+    return os.path.dirname(p), os.path.basename(p)
+
+
+def sibling(location: str, name: str) -> str:
+    """A location named ``name`` next to ``location``."""
+    return join(split(location)[0], name)
+
+
+def temporary_sibling(location: str) -> str:
+    """A hidden, unique sibling of ``location`` to write into before :func:`commit_store`."""
+    return sibling(location, f".{split(location)[1]}.partial-{uuid.uuid4().hex[:8]}")
+
+
+def exists(location: str) -> bool:
+    """Whether a file or directory (a prefix holding objects) is at ``location``."""
+    if not is_url(location):
+        return os.path.exists(location)
+    fs, path = _fs(location)
+    fs.invalidate_cache(path)
+    return fs.exists(path)
+
+
+def is_store(location: str) -> bool:
+    """Whether a Zarr v3 store (its root metadata) is at ``location``."""
+    return exists(join(location, ROOT_METADATA))
+
+
+def read_bytes(location: str) -> bytes:
+    """The whole file; FileNotFoundError if there is none."""
+    if not is_url(location):
+        with open(location, "rb") as f:
+            return f.read()
+    fs, path = _fs(location)
+    return fs.cat_file(path)
+
+
+def write_bytes(location: str, data: bytes) -> None:
+    """Write a whole file at once: readers see the old file or the new one, never a part."""
+    if is_url(location):
+        fs, path = _fs(location)
+        fs.pipe_file(path, data)
+        return
+    folder = os.path.dirname(location)
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, location)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def list_names(location: str) -> set[str]:
+    """Names of the files directly in ``location`` (empty if there is none)."""
+    if not is_url(location):
+        try:
+            return {e.name for e in os.scandir(location) if e.is_file()}
+        except FileNotFoundError:
+            return set()
+    fs, path = _fs(location)
+    fs.invalidate_cache(path)
+    try:
+        entries = fs.ls(path, detail=True)
+    except FileNotFoundError:
+        return set()
+    return {e["name"].rstrip("/").rsplit("/", 1)[-1] for e in entries if e["type"] == "file"}
+
+
+def remove(location: str) -> None:
+    """Delete a file or directory tree; nothing if it is not there."""
+    if not is_url(location):
+        if os.path.isdir(location):
+            shutil.rmtree(location, ignore_errors=True)
+        elif os.path.exists(location):
+            os.unlink(location)
+        return
+    fs, path = _fs(location)
+    fs.invalidate_cache(path)
+    if fs.exists(path):
+        fs.rm(path, recursive=True)
+        fs.invalidate_cache(path)
+
+
+def identity(location: str) -> dict:
+    """What tells a changed input from an unchanged one: location, size and time or ETag.
+
+    For a Zarr store (a directory holding ``zarr.json``), its root metadata stands for it.
+    """
+    location = normalize(location)
+    probe = next((join(location, n) for n in (ROOT_METADATA, ".zgroup", ".zarray") if exists(join(location, n))), location)
+    if not is_url(location):
+        st = os.stat(probe)
+        return {"path": location, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    fs, path = _fs(probe)
+    info = fs.info(path)
+    stamp = info.get("ETag") or info.get("etag") or info.get("md5Hash") or str(info.get("LastModified") or info.get("mtime") or "")
+    return {"path": location, "size": info.get("size"), "stamp": stamp}
+
+
+def copy_store_body(tmp: str, final: str) -> None:
+    """Copy every object of the store ``tmp`` to ``final`` except its root metadata.
+
+    The first step of :func:`commit_store` on object stores; ``final`` is not a Zarr store
+    after it (exposed on its own so that this can be tested).
+    """
+    fs, src = _fs(tmp)
+    _, dst = _fs(final)
+    fs.invalidate_cache(src)
+    files = [f for f in fs.find(src) if f != f"{src}/{ROOT_METADATA}"]
+    if files:
+        fs.copy(files, [dst + f[len(src):] for f in files])
+
+
+def commit_store(tmp: str, final: str) -> None:
+    """Make the finished store ``tmp`` appear at ``final``, replacing what was there.
+
+    Local: renames (the old store stays whole until the new one takes its name). Object
+    stores: the old store is unpublished first (its root metadata deleted), then removed;
+    the new store's objects are copied on the server, the root metadata last, and ``tmp``
+    is removed.
+    """
+    if not is_url(final):
+        if os.path.exists(final):
+            old = f"{final}.old-{uuid.uuid4().hex[:8]}"
+            os.rename(final, old)
+            os.rename(tmp, final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(tmp, final)
+        return
+    remove(join(final, ROOT_METADATA))
+    remove(final)
+    copy_store_body(tmp, final)
+    fs, src = _fs(tmp)
+    _, dst = _fs(final)
+    fs.copy(f"{src}/{ROOT_METADATA}", f"{dst}/{ROOT_METADATA}")
+    remove(tmp)

@@ -1,0 +1,197 @@
+"""Jobs whose inputs, working files and output live on an object store (S3 API).
+
+A moto S3 server runs in this process; the worker processes and the CLI reach it over HTTP
+through fsspec's configuration (``FSSPEC_S3_ENDPOINT_URL``), as a real cluster reaches S3.
+Object stores have no rename: these tests hold the job to the guarantees the local disk
+gives (identical output, resumable, nothing that looks complete before it is).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+from affine import Affine
+from distributed import Client, LocalCluster
+
+from geocoder import ingest, register, storage
+from geocoder.pipeline.register import job_directory
+from geocoder.scene import write_geotiff
+from geocoder.simulate.texture import synthetic_ortho
+from geocoder.simulate.warp import make_pair
+
+pytestmark = pytest.mark.cluster
+
+SIZE, TILE = 768, 256
+BUCKET = "geocoder-test"
+GEOCODER = [sys.executable, "-m", "geocoder.cli"]
+
+
+@pytest.fixture(scope="module")
+def s3():
+    """A local S3 server; the environment points fsspec (here and in child processes) at it."""
+    server_mod = pytest.importorskip("moto.server")
+    pytest.importorskip("s3fs")
+    logging.getLogger("werkzeug").setLevel(logging.ERROR)
+    server = server_mod.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    env = {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1",
+           "FSSPEC_S3_ENDPOINT_URL": f"http://{host}:{port}"}
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    import fsspec.config
+
+    fsspec.config.conf.clear()
+    fsspec.config.set_conf_env(fsspec.config.conf)
+    fs, _ = fsspec_fs(f"s3://{BUCKET}")
+    fs.mkdir(BUCKET)
+    try:
+        yield f"s3://{BUCKET}"
+    finally:
+        server.stop()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        fsspec.config.conf.clear()
+        fsspec.config.set_conf_env(fsspec.config.conf)
+
+
+def fsspec_fs(url: str):
+    import fsspec
+
+    return fsspec.core.url_to_fs(url)
+
+
+@pytest.fixture(scope="module")
+def s3_client(s3):
+    """Worker processes started after the environment names the S3 endpoint."""
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        with Client(cluster) as c:
+            yield c
+
+
+@pytest.fixture(scope="module")
+def pair_dir(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("s3pair")
+    margin = 48
+    src = synthetic_ortho((SIZE + 2 * margin,) * 2, seed=11)
+    pair = make_pair(src, shape=(SIZE, SIZE), seed=11, max_displacement=10.0, margin=margin)
+    write_geotiff(d / "base.tif", pair.base, transform=Affine(2, 0, 500000, 0, -2, 4000000), crs="EPSG:32633")
+    write_geotiff(d / "dist.tif", pair.distorted)
+    return d
+
+
+def load(path: str) -> dict[str, np.ndarray]:
+    ds = xr.open_zarr(path, consolidated=False)
+    out = {k: ds[k].values for k in ds.data_vars}
+    tp = xr.open_zarr(path, group="tiepoints", consolidated=False)
+    out.update({f"tiepoints/{k}": tp[k].values for k in tp.data_vars})
+    return out
+
+
+def assert_identical(a: dict, b: dict) -> None:
+    assert sorted(a) == sorted(b)
+    for k in a:
+        assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, k
+        assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), f"{k} differs"
+
+
+@pytest.fixture(scope="module")
+def reference(pair_dir, s3_client) -> dict[str, np.ndarray]:
+    out = pair_dir / "reference.zarr"
+    register(pair_dir / "base.tif", pair_dir / "dist.tif", out=out, tile=TILE, client=s3_client)
+    return load(str(out))
+
+
+@pytest.fixture(scope="module")
+def s3_inputs(pair_dir, s3, s3_client) -> tuple[str, str]:
+    """Both scenes ingested to Zarr stores on the object store."""
+    base, dist = f"{s3}/inputs/base.zarr", f"{s3}/inputs/dist.zarr"
+    ingest(str(pair_dir / "base.tif"), base, tile=TILE, client=s3_client)
+    ingest(str(pair_dir / "dist.tif"), dist, tile=TILE, client=s3_client)
+    return base, dist
+
+
+def test_storage_primitives_on_local_disk_and_object_store(s3, tmp_path):
+    for root in (str(tmp_path / "root"), f"{s3}/primitives"):
+        f = storage.join(root, "a", "x.bin")
+        assert not storage.exists(f)
+        with pytest.raises(FileNotFoundError):
+            storage.read_bytes(f)
+        storage.write_bytes(f, b"one")
+        first = storage.identity(f)
+        storage.write_bytes(f, b"second")
+        assert storage.read_bytes(f) == b"second"
+        assert storage.identity(f) != first, "a rewritten input must change the job's fingerprint"
+        assert storage.list_names(storage.join(root, "a")) == {"x.bin"}
+        assert storage.list_names(storage.join(root, "missing")) == set()
+        storage.remove(storage.join(root, "a"))
+        assert not storage.exists(f)
+        storage.remove(storage.join(root, "a"))  # nothing there: no error
+
+
+def test_commit_publishes_the_store_only_with_its_root_metadata(s3):
+    final = f"{s3}/commit/out.zarr"
+    for value in (1.0, 2.0):  # the second commit replaces the first store
+        tmp = storage.temporary_sibling(final)
+        xr.Dataset({"v": (("y", "x"), np.full((40, 30), value))}).chunk(10).to_zarr(tmp, zarr_format=3, consolidated=False)
+        storage.remove(storage.join(final, storage.ROOT_METADATA))
+        storage.remove(final)
+        storage.copy_store_body(tmp, final)  # what a job killed in the middle of the commit leaves
+        assert not storage.is_store(final)
+        with pytest.raises(Exception):
+            xr.open_zarr(final, consolidated=False)
+        storage.commit_store(tmp, final)
+        assert not storage.exists(tmp)
+        assert storage.is_store(final)
+        np.testing.assert_array_equal(xr.open_zarr(final, consolidated=False).v.values, value)
+
+
+def test_register_on_the_object_store_matches_local_disk(s3, s3_inputs, reference, s3_client):
+    out = f"{s3}/outputs/registered.zarr"
+    ds = register(*s3_inputs, out=out, tile=TILE, client=s3_client)
+    assert ds.sizes["x"] == SIZE
+    assert_identical(load(out), reference)
+    assert not storage.exists(job_directory(out)), "the job's working files are removed after the commit"
+
+
+def test_killed_job_on_the_object_store_resumes(s3, s3_inputs, reference, s3_client):
+    out = f"{s3}/outputs/resumed.zarr"
+    tiles = storage.join(job_directory(out), "tiles", "dense-r0")
+    cmd = [*GEOCODER, "register", *s3_inputs, "--out", out, "--tile", str(TILE), "--scheduler", s3_client.scheduler.address]
+    first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 600
+    while len(storage.list_names(tiles)) < 2 and first.poll() is None and time.time() < deadline:
+        time.sleep(0.1)
+    assert first.poll() is None, "the job ended before it could be killed"
+    first.send_signal(signal.SIGKILL)
+    first.wait()
+    assert not storage.is_store(out), "a killed job must not leave an output store"
+    assert storage.exists(storage.join(job_directory(out), "manifest.json"))
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr
+    m = re.search(r"resumed: (\d+) of (\d+) tile tasks finished earlier, at most (\d+) \(([\d.]+)%\) computed again", r.stdout)
+    assert m, r.stdout
+    print(m[0])
+    assert int(m[1]) > int(m[2]) / 2 and float(m[4]) < 10
+    assert_identical(load(out), reference)
+    assert not storage.exists(job_directory(out))
+
+
+def test_unwritable_bucket_is_named_in_the_error(s3, pair_dir, s3_client):
+    from geocoder.errors import InputError
+
+    with pytest.raises(InputError, match="no-such-bucket"):
+        register(pair_dir / "base.tif", pair_dir / "dist.tif", out="s3://no-such-bucket/x.zarr", tile=TILE, client=s3_client)
