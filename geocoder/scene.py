@@ -134,6 +134,7 @@ def ingest(
     nodata: float | None = None,
     bands: list[int] | None = None,
     client=None,
+    atomic: bool = True,
 ) -> xr.DataArray:
     """Write a scene to a Zarr v3 store chunked by tile, CRS and transform kept.
 
@@ -141,6 +142,9 @@ def ingest(
     ``(bands, tile, tile)``. It is written under a temporary name and committed when
     complete (:func:`geocoder.storage.commit_store`), so a killed job never leaves a store
     that looks finished. ``out`` is a local path or any fsspec URL.
+
+    ``atomic=False`` writes in place, for callers that record completion themselves (a
+    job's manifest): on object stores it saves copying the store once.
 
     Returns
     -------
@@ -150,7 +154,7 @@ def ingest(
     scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands)
     scene = scene.chunk(_chunks(tile))
     out = storage.normalize(out)
-    tmp = storage.temporary_sibling(out)
+    tmp = storage.temporary_sibling(out) if atomic else out
     ds = scene.to_dataset(name=IMAGE_VAR)
     ds[IMAGE_VAR].attrs = {k: v for k, v in scene.attrs.items() if k != "georeferenced"}
     ds[IMAGE_VAR].attrs["georeferenced"] = int(bool(scene.attrs.get("georeferenced")))
@@ -162,9 +166,11 @@ def ingest(
         else:
             delayed.compute()
     except BaseException:
-        storage.remove(tmp)
+        if atomic:
+            storage.remove(tmp)
         raise
-    storage.commit_store(tmp, out)
+    if atomic:
+        storage.commit_store(tmp, out)
     reopened = open_scene(out, chunks=tile)
     reopened.attrs["source"] = scene.attrs.get("source", out)
     return reopened

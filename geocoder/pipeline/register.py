@@ -405,7 +405,7 @@ def _ingest(job: Job, name: str, scene: xr.DataArray, tile: int, client) -> xr.D
         job.note_unfinished(ntiles)
         bar = progress.current()
         bar.phase(f"ingest ({name})", 1)
-        reopened = ingest(scene, path, tile=tile, client=client)
+        reopened = ingest(scene, path, tile=tile, client=client, atomic=False)  # complete once the stage is saved
         bar.advance()
         bar.close()
         job.count(stage, run=ntiles, skipped=0)
