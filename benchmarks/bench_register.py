@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import xarray as xr
+from bench_cluster import WorkerPeak  # the script's directory is on sys.path
 from distributed import Client, LocalCluster
 
 from geocoder import RegisterOptions, Status, register
@@ -44,42 +46,6 @@ def _errors(out, pair, ds):
     return len(bx), float(tperr.max()), float(np.sqrt(d2[inside].mean())), float(inside.mean())
 
 
-class PeakWorkerMemory:
-    """Polls the resident memory of every worker while a block runs; ``peak`` in MiB.
-
-    (``ru_maxrss`` would be wrong here: a worker process inherits its parent's peak.)
-    """
-
-    def __init__(self, client, interval: float = 0.1) -> None:
-        self.client, self.interval, self.peak = client, interval, 0.0
-
-    def __enter__(self):
-        import threading
-
-        self._stop = threading.Event()
-
-        def poll():
-            def rss():
-                import psutil
-
-                return psutil.Process().memory_info().rss / 2**20
-
-            while not self._stop.is_set():
-                try:
-                    self.peak = max(self.peak, *self.client.run(rss).values())
-                except Exception:
-                    pass
-                self._stop.wait(self.interval)
-
-        self._thread = threading.Thread(target=poll, daemon=True)
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self._stop.set()
-        self._thread.join()
-
-
 def speed(size: int, work: Path) -> None:
     margin = 48
     src = synthetic_ortho((size + 2 * margin, size + 2 * margin), seed=5)
@@ -92,7 +58,7 @@ def speed(size: int, work: Path) -> None:
             register(work / "b.tif", work / "d.tif", tile=512, client=c, out=work / "warm.zarr", dense=False)  # compile numba in workers
             t0 = time.perf_counter()
             out = work / f"out{workers}.zarr"
-            with PeakWorkerMemory(c) as mem:
+            with WorkerPeak(list(c.run(os.getpid).values())) as mem:
                 ds = register(work / "b.tif", work / "d.tif", tile=512, client=c, out=out, dense=False)
             total = time.perf_counter() - t0
             s = json.loads(ds.attrs["summary"])
@@ -100,7 +66,7 @@ def speed(size: int, work: Path) -> None:
             sec = s["seconds"]
             rows.append(
                 (workers, (s["base_points"] + s["distorted_points"]) / sec["interest points"], sec["interest points"],
-                 sec["correspondence"], sec["resampling"], total, size * size / total / 1e6, n, rmse, mem.peak)
+                 sec["correspondence"], sec["resampling"], total, size * size / total / 1e6, n, rmse, max(mem.peak.values()))
             )
     print(f"\nSpeed: {size} x {size} synthetic pair, tile 512, local worker processes (1 thread each)")
     print("| workers | interest pts/s | interest s | correspondence s | resampling s | end-to-end s | Mpx/s | tie points | RMSE px | peak worker MiB |")

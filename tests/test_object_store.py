@@ -46,7 +46,9 @@ def s3():
     server.start()
     host, port = server.get_host_and_port()
     env = {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1",
-           "FSSPEC_S3_ENDPOINT_URL": f"http://{host}:{port}"}
+           "FSSPEC_S3_ENDPOINT_URL": f"http://{host}:{port}",
+           # GDAL's own S3 client (/vsis3/) for GeoTIFFs
+           "AWS_S3_ENDPOINT": f"{host}:{port}", "AWS_HTTPS": "NO", "AWS_VIRTUAL_HOSTING": "FALSE"}
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
     import fsspec.config
@@ -157,6 +159,17 @@ def test_commit_publishes_the_store_only_with_its_root_metadata(s3):
         assert not storage.exists(tmp)
         assert storage.is_store(final)
         np.testing.assert_array_equal(xr.open_zarr(final, consolidated=False).v.values, value)
+
+
+def test_geotiff_on_the_object_store_reads_like_the_local_file(s3, pair_dir, s3_client):
+    from geocoder import open_scene
+
+    url = f"{s3}/inputs/base.tif"
+    storage.write_bytes(url, (pair_dir / "base.tif").read_bytes())
+    remote = open_scene(url, chunks=TILE)
+    local = open_scene(pair_dir / "base.tif", chunks=TILE)
+    assert remote.rio.crs == local.rio.crs and remote.rio.transform() == local.rio.transform()
+    np.testing.assert_array_equal(s3_client.compute(remote.data).result(), local.values)
 
 
 def test_register_on_the_object_store_matches_local_disk(s3, s3_inputs, reference, s3_client):
