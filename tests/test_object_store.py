@@ -8,8 +8,6 @@ gives (identical output, resumable, nothing that looks complete before it is).
 
 from __future__ import annotations
 
-import logging
-import os
 import re
 import signal
 import subprocess
@@ -28,6 +26,7 @@ from geocoder.pipeline.register import job_directory
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import make_pair
+from geocoder.testing import local_s3
 
 pytestmark = pytest.mark.cluster
 
@@ -38,42 +37,9 @@ GEOCODER = [sys.executable, "-m", "geocoder.cli"]
 
 @pytest.fixture(scope="module")
 def s3():
-    """A local S3 server; the environment points fsspec (here and in child processes) at it."""
-    server_mod = pytest.importorskip("moto.server")
-    pytest.importorskip("s3fs")
-    logging.getLogger("werkzeug").setLevel(logging.ERROR)
-    server = server_mod.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    env = {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1",
-           "FSSPEC_S3_ENDPOINT_URL": f"http://{host}:{port}",
-           # GDAL's own S3 client (/vsis3/) for GeoTIFFs
-           "AWS_S3_ENDPOINT": f"{host}:{port}", "AWS_HTTPS": "NO", "AWS_VIRTUAL_HOSTING": "FALSE"}
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    import fsspec.config
-
-    fsspec.config.conf.clear()
-    fsspec.config.set_conf_env(fsspec.config.conf)
-    fs, _ = fsspec_fs(f"s3://{BUCKET}")
-    fs.mkdir(BUCKET)
-    try:
-        yield f"s3://{BUCKET}"
-    finally:
-        server.stop()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-        fsspec.config.conf.clear()
-        fsspec.config.set_conf_env(fsspec.config.conf)
-
-
-def fsspec_fs(url: str):
-    import fsspec
-
-    return fsspec.core.url_to_fs(url)
+    """A local S3 server; the environment points fsspec and GDAL (here and in child processes) at it."""
+    with local_s3(BUCKET) as url:
+        yield url
 
 
 @pytest.fixture(scope="module")
