@@ -65,7 +65,7 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
 @main.command()
 @click.argument("base")
 @click.argument("distorted")
-@click.option("--out", required=True, help="Output Zarr store (written atomically).")
+@click.option("--out", required=True, help="Output Zarr store: a path or an fsspec URL such as s3://bucket/out.zarr (committed atomically).")
 @click.option("--resampling", default="bilinear", show_default=True, type=click.Choice(["nearest", "bilinear", "cubic", "lanczos"]))
 @tile_option
 @click.option("--band", default=1, show_default=True, help="1-based band used for matching.")
@@ -114,7 +114,7 @@ def _print_summary(ds, seconds: float, out: str | None) -> None:
 @scheduler_option
 @_friendly
 def ingest(src, out, tile, nodata, scheduler):
-    """Write SRC (GeoTIFF/COG) to a Zarr v3 store OUT chunked by tile, CRS kept."""
+    """Write SRC (GeoTIFF/COG, path or URL) to a Zarr v3 store OUT (path or fsspec URL) chunked by tile, CRS kept."""
     from .runtime import dask_client
     from .scene import ingest as run
 

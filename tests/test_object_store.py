@@ -42,6 +42,12 @@ def s3():
         yield url
 
 
+def fsspec_fs(url: str):
+    import fsspec
+
+    return fsspec.core.url_to_fs(url)
+
+
 @pytest.fixture(scope="module")
 def s3_client(s3):
     """Worker processes started after the environment names the S3 endpoint."""
@@ -85,10 +91,15 @@ def reference(pair_dir, s3_client) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def s3_inputs(pair_dir, s3, s3_client) -> tuple[str, str]:
-    """Both scenes ingested to Zarr stores on the object store."""
+    """Both scenes ingested to Zarr stores on the object store (Python API and CLI)."""
     base, dist = f"{s3}/inputs/base.zarr", f"{s3}/inputs/dist.zarr"
     ingest(str(pair_dir / "base.tif"), base, tile=TILE, client=s3_client)
-    ingest(str(pair_dir / "dist.tif"), dist, tile=TILE, client=s3_client)
+    r = subprocess.run([*GEOCODER, "ingest", str(pair_dir / "dist.tif"), dist, "--tile", str(TILE),
+                        "--scheduler", s3_client.scheduler.address], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    fs, path = fsspec_fs(f"{s3}/inputs")
+    fs.invalidate_cache()
+    assert sorted(p.rsplit("/", 1)[-1] for p in fs.ls(path, detail=False)) == ["base.zarr", "dist.zarr"], "no temporary store left"
     return base, dist
 
 
