@@ -1,4 +1,5 @@
-"""Real images from ../shared/data warped by a known field, written as GeoTIFFs."""
+"""Test pairs (real images from ../shared/data or synthetic texture, warped by a known field,
+written as GeoTIFFs) and comparisons of output stores."""
 
 from __future__ import annotations
 
@@ -6,10 +7,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import xarray as xr
 from affine import Affine
 from conftest import read_band
 
 from geocoder.scene import write_geotiff
+from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import SyntheticPair, make_pair
 
 S2_REF = "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif"
@@ -57,3 +60,29 @@ def tiepoint_errors(tp, pair: SyntheticPair) -> np.ndarray:
     bx, by = np.asarray(tp["base_x"]), np.asarray(tp["base_y"])
     tx, ty = pair.field.displacement(bx, by)
     return np.hypot(np.asarray(tp["dist_x"]) - bx - tx, np.asarray(tp["dist_y"]) - by - ty)
+
+
+def write_synthetic_pair(directory: Path, size: int, *, seed: int, max_displacement: float, margin: int = 48) -> Path:
+    """``base.tif`` (georeferenced, UTM 33N, 2 m) and ``dist.tif`` (raw) of a synthetic texture."""
+    src = synthetic_ortho((size + 2 * margin,) * 2, seed=seed)
+    pair = make_pair(src, shape=(size, size), seed=seed, max_displacement=max_displacement, margin=margin)
+    write_geotiff(directory / "base.tif", pair.base, transform=Affine(2, 0, 500000, 0, -2, 4000000), crs="EPSG:32633")
+    write_geotiff(directory / "dist.tif", pair.distorted)
+    return directory
+
+
+def load_output(store) -> dict[str, np.ndarray]:
+    """Every variable of a register output store, the tie points' under ``tiepoints/``."""
+    ds = xr.open_zarr(store, consolidated=False)
+    out = {k: ds[k].values for k in ds.data_vars}
+    tp = xr.open_zarr(store, group="tiepoints", consolidated=False)
+    out.update({f"tiepoints/{k}": tp[k].values for k in tp.data_vars})
+    return out
+
+
+def assert_identical(a: dict, b: dict) -> None:
+    """Same variables, dtypes, shapes and values, bit for bit (NaN equal to NaN)."""
+    assert sorted(a) == sorted(b)
+    for k in a:
+        assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, k
+        assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), f"{k} differs"

@@ -18,15 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import xarray as xr
-from affine import Affine
 from distributed import Client
+from pairs import assert_identical, load_output, write_synthetic_pair
 
 from geocoder import register
 from geocoder.pipeline.register import job_directory
-from geocoder.scene import write_geotiff
-from geocoder.simulate.texture import synthetic_ortho
-from geocoder.simulate.warp import make_pair
 
 pytestmark = pytest.mark.cluster
 
@@ -36,28 +32,7 @@ GEOCODER = [sys.executable, "-m", "geocoder.cli"]
 
 @pytest.fixture(scope="module")
 def pair_dir(tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("pair")
-    margin = 48
-    src = synthetic_ortho((SIZE + 2 * margin,) * 2, seed=5)
-    pair = make_pair(src, shape=(SIZE, SIZE), seed=5, max_displacement=12.0, margin=margin)
-    write_geotiff(d / "base.tif", pair.base, transform=Affine(2, 0, 500000, 0, -2, 4000000), crs="EPSG:32633")
-    write_geotiff(d / "dist.tif", pair.distorted)
-    return d
-
-
-def load(path: Path) -> dict[str, np.ndarray]:
-    ds = xr.open_zarr(path, consolidated=False)
-    out = {k: ds[k].values for k in ds.data_vars}
-    tp = xr.open_zarr(path, group="tiepoints", consolidated=False)
-    out.update({f"tiepoints/{k}": tp[k].values for k in tp.data_vars})
-    return out
-
-
-def assert_identical(a: dict, b: dict) -> None:
-    assert sorted(a) == sorted(b)
-    for k in a:
-        assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, k
-        assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), f"{k} differs"
+    return write_synthetic_pair(tmp_path_factory.mktemp("pair"), SIZE, seed=5, max_displacement=12.0)
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +40,7 @@ def reference(pair_dir, client) -> dict[str, np.ndarray]:
     """The undisturbed job on the embedded default (a LocalCluster of worker processes)."""
     out = pair_dir / "reference.zarr"
     register(pair_dir / "base.tif", pair_dir / "dist.tif", out=out, tile=TILE, client=client)
-    return load(out)
+    return load_output(out)
 
 
 def cluster_up(directory: Path, *extra: str) -> dict:
@@ -116,7 +91,7 @@ def test_cluster_up_runs_the_same_job_bit_for_bit(pair_dir, reference, launched)
     assert f"Dask dashboard: {info['dashboard']}" in r.stderr
     for phase in ("interest points", "correspondence", "dense matching", "resampling"):
         assert phase in r.stderr
-    assert_identical(load(out), reference)
+    assert_identical(load_output(out), reference)
     assert not Path(job_directory(str(out))).exists()
 
 
@@ -148,7 +123,7 @@ def test_worker_killed_during_dense_matching(pair_dir, reference, launched):
         assert not errors, errors
         c.wait_for_workers(2, timeout=120)  # the nanny restarted the killed worker
         assert killed not in c.run(os.getpid).values()
-    assert_identical(load(out), reference)
+    assert_identical(load_output(out), reference)
 
 
 def test_killed_job_resumes_and_recomputes_few_tiles(pair_dir, reference, launched):
@@ -173,7 +148,7 @@ def test_killed_job_resumes_and_recomputes_few_tiles(pair_dir, reference, launch
     skipped, total, again, percent = int(m[1]), int(m[2]), int(m[3]), float(m[4])
     assert skipped > total / 2
     assert 0 < again and percent < 10
-    assert_identical(load(out), reference)
+    assert_identical(load_output(out), reference)
     assert not Path(job_directory(str(out))).exists()
 
 
@@ -183,7 +158,7 @@ def test_tls_cluster_runs_the_job_and_refuses_clients_without_certificates(pair_
         assert info["address"].startswith("tls://")
         out = pair_dir / "tls.zarr"
         register(pair_dir / "base.tif", pair_dir / "dist.tif", out=out, tile=TILE, scheduler=str(tmp_path / "cluster.json"))
-        assert_identical(load(out), reference)
+        assert_identical(load_output(out), reference)
         with pytest.raises((OSError, TimeoutError, TypeError)):
             Client(info["address"], timeout=5, set_as_default=False)
     finally:
