@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import tempfile
 import threading
 import time
@@ -24,19 +25,29 @@ from affine import Affine
 from distributed import Client
 
 from geocoder import register
+from geocoder.progress import Progress
 from geocoder.runtime import local_cluster
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import make_pair
 
 
-class WorkerPeak:
-    """Peak resident memory (MiB) of each worker process while the block runs."""
+class WorkerPeak(Progress):
+    """Peak resident memory (MiB) of each worker process while the block runs.
+
+    Passed as the job's progress receiver, it also keeps the largest worker's peak per
+    phase (``by_phase``, round numbers folded), to tell which stage sets the peak.
+    """
 
     def __init__(self, pids: list[int], interval: float = 0.05) -> None:
         self.procs = [psutil.Process(p) for p in pids]
         self.interval = interval
         self.peak = dict.fromkeys(pids, 0.0)
+        self.current = "start"
+        self.by_phase: dict[str, float] = {}
+
+    def phase(self, name: str, total: int, *, skipped: int = 0) -> None:
+        self.current = re.sub(r"\s*\((round|pass) \d+\)|,?\s*\d+/\d+", "", name)
 
     def __enter__(self):
         self._stop = threading.Event()
@@ -45,9 +56,11 @@ class WorkerPeak:
             while not self._stop.is_set():
                 for p in self.procs:
                     try:
-                        self.peak[p.pid] = max(self.peak[p.pid], p.memory_info().rss / 2**20)
+                        rss = p.memory_info().rss / 2**20
                     except psutil.Error:
-                        pass
+                        continue
+                    self.peak[p.pid] = max(self.peak[p.pid], rss)
+                    self.by_phase[self.current] = max(self.by_phase.get(self.current, 0.0), rss)
                 self._stop.wait(self.interval)
 
         self._t = threading.Thread(target=poll, daemon=True)
@@ -85,10 +98,10 @@ def run(size: str, workers: int, dense: bool, work: Path, tile: int) -> dict:
         pids = list(c.run(os.getpid).values())
         t0 = time.perf_counter()
         with WorkerPeak(pids) as mem:
-            register(base, dist, out=out, tile=tile, dense=dense, client=c, resume=False)
+            register(base, dist, out=out, tile=tile, dense=dense, client=c, resume=False, show_progress=mem)
         wall = time.perf_counter() - t0
     h, w = shape_of(size)
-    return {"wall": wall, "peak": max(mem.peak.values()), "mpx": h * w / 1e6 / wall}
+    return {"wall": wall, "peak": max(mem.peak.values()), "mpx": h * w / 1e6 / wall, "by_phase": mem.by_phase}
 
 
 def main() -> None:
@@ -112,6 +125,7 @@ def main() -> None:
                 first.setdefault(w, r["peak"])
                 print(f"| {'dense' if dense else 'polynomial'} | {size if 'x' in size else size + '²'} | {w} | {r['wall']:.1f} | {r['mpx']:.2f} | "
                       f"{r['peak']:.0f} | {100 * (r['peak'] / first[w] - 1):+.1f} % |", flush=True)
+                print("  peak by phase: " + ", ".join(f"{k} {v:.0f}" for k, v in r["by_phase"].items()), flush=True)
     print("\nwall-time ratio 1/2 workers is the row pairs above; memory is the largest worker's peak resident set.")
 
 
