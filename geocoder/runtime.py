@@ -21,22 +21,30 @@ log = logging.getLogger(__name__)
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1",
               "GDAL_CACHEMAX": "16"}
 
+#: Dask configuration of every worker (also in ``workers/dask.yaml``). The statistical
+#: profiler keeps ~1000 s of call-stack trees per worker (``profile_history``): on a job of
+#: half an hour that was +90-130 MiB per worker, growing with the job's length rather than
+#: the tile. Turn it back on (``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=True``) to tune.
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+
 
 def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "auto") -> LocalCluster:
     """A local cluster of worker processes sized to the machine, one thread each.
 
     Parallelism comes from tasks, not from threads inside kernels, so every worker runs
-    one thread (and one BLAS thread).
+    one thread (and one BLAS thread). Workers run with :data:`WORKER_ENV` and
+    :data:`WORKER_CONFIG` (a nanny hands its configuration to the worker it restarts).
     """
     n = n_workers or max(1, os.cpu_count() or 1)
-    return LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        memory_limit=memory_limit,
-        dashboard_address=":0",
-        env=dict(WORKER_ENV),
-    )
+    with dask.config.set(WORKER_CONFIG):
+        return LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            memory_limit=memory_limit,
+            dashboard_address=":0",
+            env=dict(WORKER_ENV),
+        )
 
 
 def connect(scheduler: str, *, timeout: float = 60) -> Client:

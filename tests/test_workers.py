@@ -6,11 +6,14 @@ import sys
 import time
 from pathlib import Path
 
+import dask
 import numpy as np
 import pytest
+import yaml
 from distributed import Client
 
 from geocoder import register
+from geocoder.runtime import WORKER_CONFIG, local_cluster
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import make_pair
@@ -43,9 +46,17 @@ def preloaded_cluster(tmp_path):
             p.wait(timeout=30)
 
 
+def _profiler(client: Client) -> set[tuple[bool, int]]:
+    """(profiler enabled, profile cycles kept) of every worker."""
+    return set(client.run(
+        lambda dask_worker: (__import__("dask").config.get("distributed.worker.profile.enabled"), len(dask_worker.profile_history))
+    ).values())
+
+
 def test_register_on_preloaded_workers(tmp_path, preloaded_cluster):
     c = preloaded_cluster
     assert all(v["NUMBA_NUM_THREADS"] == "1" for v in c.run(lambda: dict(os.environ)).values())
+    assert _profiler(c) == {(False, 0)}, "workers/dask.yaml turns the profiler off"
     src = synthetic_ortho((352, 352), seed=3)
     pair = make_pair(src, shape=(256, 256), seed=3, margin=48)
     write_geotiff(tmp_path / "b.tif", pair.base)
@@ -54,3 +65,21 @@ def test_register_on_preloaded_workers(tmp_path, preloaded_cluster):
     inside = ds.status.values > 0
     rmse = np.sqrt(np.mean(((ds.dx.values - pair.dx) ** 2 + (ds.dy.values - pair.dy) ** 2)[inside]))
     assert rmse < 0.1
+
+
+def test_local_cluster_workers_keep_no_profile_history():
+    """The profiler's history grows with the job's length (90-130 MiB per worker in 25 min)."""
+    with local_cluster(1) as cluster, Client(cluster) as c:
+        assert c.submit(sum, range(10)).result() == 45
+        time.sleep(2.5)  # more than two profile cycles (1 s each) if the profiler ran
+        assert _profiler(c) == {(False, 0)}
+        assert dask.config.get("distributed.worker.profile.enabled") is True, "the client's own configuration is untouched"
+
+
+def test_workers_dask_yaml_matches_the_local_worker_configuration():
+    config = yaml.safe_load((ROOT / "workers" / "dask.yaml").read_text())
+    for key, value in WORKER_CONFIG.items():
+        node = config
+        for part in key.split("."):
+            node = node[part]
+        assert node == value, key
