@@ -72,10 +72,13 @@ def write_synthetic_pair(directory: Path, size: int, *, seed: int, max_displacem
 
 
 def load_output(store) -> dict[str, np.ndarray]:
-    """Every variable of a register output store, the tie points' under ``tiepoints/``."""
-    ds = xr.open_zarr(store, consolidated=False)
+    """Every variable of a register output store, the tie points' under ``tiepoints/``.
+
+    Read by this process (no dask), whatever Client happens to be the default.
+    """
+    ds = xr.open_zarr(store, consolidated=False, chunks=None)
     out = {k: ds[k].values for k in ds.data_vars}
-    tp = xr.open_zarr(store, group="tiepoints", consolidated=False)
+    tp = xr.open_zarr(store, group="tiepoints", consolidated=False, chunks=None)
     out.update({f"tiepoints/{k}": tp[k].values for k in tp.data_vars})
     return out
 
