@@ -8,6 +8,7 @@ from outside (psutil) every 50 ms, so a busy worker is measured too.
     python benchmarks/bench_cluster.py                       # polynomial 2048/8192, dense 2048/4096
     python benchmarks/bench_cluster.py --dense-sizes 2048 8192 --workers 2
     python benchmarks/bench_cluster.py --sizes --dense-sizes 2048 1024x8192 --workers 2   # width only
+    python benchmarks/bench_cluster.py --sizes --dense-sizes 2048 --workers 2 --trace   # which tasks set the peak
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import psutil
 from affine import Affine
-from distributed import Client
+from distributed import Client, WorkerPlugin
 
 from geocoder import register
 from geocoder.progress import Progress
@@ -72,6 +73,39 @@ class WorkerPeak(Progress):
         self._t.join()
 
 
+class TaskMemory(WorkerPlugin):
+    """Which tasks raised a worker's high-water mark (``ru_maxrss``, kept by the kernel, so
+    no sample is missed), and how much task data the worker held at that moment."""
+
+    name = "task-memory"
+
+    def setup(self, worker) -> None:
+        self.worker = worker
+        self.started: dict = {}
+        self.rows: list[tuple] = []
+
+    def transition(self, key, start, finish, **kwargs) -> None:
+        import resource
+
+        if finish == "executing":
+            self.started[key] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        elif start == "executing" and key in self.started:
+            before = self.started.pop(key)
+            after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+            if after > before:
+                rss = psutil.Process().memory_info().rss
+                held = len(self.worker.data), self.worker.state.nbytes / 2**20
+                self.rows.append((str(key), before / 1024, after / 1024, rss / 2**20, *held))
+
+
+def print_trace(client: Client, top: int = 8) -> None:
+    """The tasks that set each worker's high-water mark, largest last."""
+    for addr, rows in client.run(lambda dask_worker: dask_worker.plugins["task-memory"].rows).items():
+        print(f"  {addr}: {len(rows)} tasks raised the peak; the last {top}:")
+        for key, before, after, rss, n, mib in rows[-top:]:
+            print(f"    {key[:60]:60s} {before:6.0f} -> {after:6.0f} MiB (rss after {rss:.0f}; holds {n} results, {mib:.1f} MiB)")
+
+
 def shape_of(size: str) -> tuple[int, int]:
     """``"2048"`` -> (2048, 2048); ``"1024x8192"`` -> (rows, columns)."""
     h, _, w = size.partition("x")
@@ -91,15 +125,19 @@ def make_scene(size: str, work: Path) -> tuple[Path, Path]:
     return base, dist
 
 
-def run(size: str, workers: int, dense: bool, work: Path, tile: int) -> dict:
+def run(size: str, workers: int, dense: bool, work: Path, tile: int, trace: bool = False) -> dict:
     base, dist = make_scene(size, work)
     out = work / f"out-{size}-{workers}-{dense}.zarr"
     with local_cluster(workers) as cluster, Client(cluster) as c:
         pids = list(c.run(os.getpid).values())
+        if trace:
+            c.register_plugin(TaskMemory())
         t0 = time.perf_counter()
         with WorkerPeak(pids) as mem:
             register(base, dist, out=out, tile=tile, dense=dense, client=c, resume=False, show_progress=mem)
         wall = time.perf_counter() - t0
+        if trace:
+            print_trace(c)
     h, w = shape_of(size)
     return {"wall": wall, "peak": max(mem.peak.values()), "mpx": h * w / 1e6 / wall, "by_phase": mem.by_phase}
 
@@ -110,6 +148,7 @@ def main() -> None:
     ap.add_argument("--dense-sizes", nargs="*", default=["2048", "4096"], help="scene sides (or ROWSxCOLS) for the dense job")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--tile", type=int, default=512)
+    ap.add_argument("--trace", action="store_true", help="print the tasks that raised each worker's memory high-water mark")
     ap.add_argument("--work", default=None, help="directory for the scenes (default: a temporary one)")
     args = ap.parse_args()
     work = Path(args.work or tempfile.mkdtemp(prefix="bench-cluster-"))
@@ -121,7 +160,7 @@ def main() -> None:
         first: dict[int, float] = {}  # per worker count: the first scene's peak
         for size in sizes:
             for w in args.workers:
-                r = run(size, w, dense, work, args.tile)
+                r = run(size, w, dense, work, args.tile, args.trace)
                 first.setdefault(w, r["peak"])
                 print(f"| {'dense' if dense else 'polynomial'} | {size if 'x' in size else size + '²'} | {w} | {r['wall']:.1f} | {r['mpx']:.2f} | "
                       f"{r['peak']:.0f} | {100 * (r['peak'] / first[w] - 1):+.1f} % |", flush=True)
