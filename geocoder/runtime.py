@@ -132,27 +132,49 @@ def current_client() -> Client | None:
         return None
 
 
-def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
-    """Compute ``tasks`` (key -> dask collection) together; yield ``(key, result)`` as each finishes.
+def compute_as_completed(tasks: dict[str, Any], *, window: int | None = None) -> Iterator[tuple[str, Any]]:
+    """Compute ``tasks`` (key -> dask collection); yield ``(key, result)`` as each finishes.
 
-    On a distributed client the tasks share one graph (common inputs computed once) and
-    results arrive in completion order; without one they are computed together by the
-    current Dask scheduler and yielded in key order.
+    On a distributed client results arrive in completion order. Tasks that share inputs
+    run as one graph (common inputs computed once). Tasks that are each a single task of
+    their own (inputs embedded, data read by the task) are submitted ``window`` at a time,
+    by default two per worker thread, the next as each finishes: a finished result waits
+    on its worker, with the inputs of its task, until the client has fetched it, so
+    submitting all at once let a busy client leave a backlog that grew with the number
+    of tiles. Without a client the tasks are computed together by the current Dask
+    scheduler and yielded in key order.
     """
     if not tasks:
         return
-    keys = list(tasks)
     client = current_client()
     if client is None:
-        values = dask.compute(*tasks.values())
-        yield from zip(keys, values)
+        yield from zip(tasks, dask.compute(*tasks.values()))
         return
-    futures = client.compute(list(tasks.values()))
-    index = {id(f): k for f, k in zip(futures, keys)}
+    items = list(tasks.items())
+    if all(_single_task(t) for _, t in items):
+        window = window or 2 * max(1, sum(client.nthreads().values()))
+    else:
+        window = len(items)
+    first = client.compute([t for _, t in items[:window]])
+    running = {id(f): (k, f) for (k, _), f in zip(items[:window], first)}
+    queue = as_completed(first, with_results=True)
+    del first
+    rest = iter(items[window:])
     try:
-        for fut in as_completed(futures):
-            yield index[id(fut)], fut.result()
+        for fut, value in queue:
+            key, _ = running.pop(id(fut))
             fut.release()
+            nxt = next(rest, None)
+            if nxt is not None:
+                f = client.compute(nxt[1])
+                running[id(f)] = (nxt[0], f)
+                queue.add(f)
+            yield key, value
     finally:
-        for f in futures:
-            f.cancel()
+        for _, fut in running.values():
+            fut.cancel()
+
+
+def _single_task(collection: Any) -> bool:
+    graph = collection.__dask_graph__()
+    return graph is not None and len(graph) == 1

@@ -13,7 +13,7 @@ import yaml
 from distributed import Client
 
 from geocoder import register
-from geocoder.runtime import WORKER_CONFIG, local_cluster
+from geocoder.runtime import WORKER_CONFIG, compute_as_completed, local_cluster
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import make_pair
@@ -83,3 +83,37 @@ def test_workers_dask_yaml_matches_the_local_worker_configuration():
         for part in key.split("."):
             node = node[part]
         assert node == value, key
+
+
+def _square(i: int, pause: float = 0.0) -> int:
+    time.sleep(pause)
+    return i * i
+
+
+def _compute_counting_futures(client: Client, tasks: dict) -> tuple[dict, int, int]:
+    """Results, and the most futures the client held / held unfinished at a yield."""
+    results, held, unfinished = {}, 0, 0
+    with client.as_current():
+        for key, value in compute_as_completed(tasks):
+            results[key] = value
+            states = list(client.futures.values())
+            held = max(held, len(states))
+            unfinished = max(unfinished, sum(s.status == "pending" for s in states))
+    return results, held, unfinished
+
+
+def test_tile_tasks_of_their_own_run_a_window_at_a_time(client):
+    """A finished task's result and inputs stay on its worker until the client fetches
+    them, so independent tile tasks are submitted two per worker thread, not all at once."""
+    tasks = {f"t{i}": dask.delayed(_square, pure=False)(i, 0.05) for i in range(40)}
+    results, _, unfinished = _compute_counting_futures(client, tasks)
+    assert results == {f"t{i}": i * i for i in range(40)}
+    assert unfinished <= 2 * sum(client.nthreads().values())
+
+
+def test_tile_tasks_sharing_inputs_run_as_one_graph(client):
+    shared = dask.delayed(_square, pure=False)(3)
+    tasks = {f"t{i}": dask.delayed(int.__add__)(shared, i) for i in range(40)}
+    results, held, _ = _compute_counting_futures(client, tasks)
+    assert results == {f"t{i}": 9 + i for i in range(40)}
+    assert held >= 39, "submitted together, the shared input computed once"
