@@ -137,12 +137,12 @@ def compute_as_completed(tasks: dict[str, Any], *, window: int | None = None) ->
 
     On a distributed client results arrive in completion order. Tasks that share inputs
     run as one graph (common inputs computed once). Tasks that are each a single task of
-    their own (inputs embedded, data read by the task) are submitted ``window`` at a time,
-    by default two per worker thread, the next as each finishes: a finished result waits
-    on its worker, with the inputs of its task, until the client has fetched it, so
-    submitting all at once let a busy client leave a backlog that grew with the number
-    of tiles. Without a client the tasks are computed together by the current Dask
-    scheduler and yielded in key order.
+    their own (inputs embedded, data read by the task) are kept ``window`` in flight, by
+    default two per worker thread at the moment, the next submitted as each finishes: a
+    finished result waits on its worker, with its task's inputs, until the client has
+    fetched it, so submitting all at once let a busy client leave a backlog that grew with
+    the number of tiles. Without a client the tasks are computed together by the current
+    Dask scheduler and yielded in key order.
     """
     if not tasks:
         return
@@ -151,23 +151,27 @@ def compute_as_completed(tasks: dict[str, Any], *, window: int | None = None) ->
         yield from zip(tasks, dask.compute(*tasks.values()))
         return
     items = list(tasks.items())
-    if all(_single_task(t) for _, t in items):
-        window = window or 2 * max(1, sum(client.nthreads().values()))
-    else:
-        window = len(items)
-    first = client.compute([t for _, t in items[:window]])
-    running = {id(f): (k, f) for (k, _), f in zip(items[:window], first)}
+    shared = not all(_single_task(t) for _, t in items)
+
+    def room() -> int:  # asked again as each task finishes: workers may join or leave
+        if shared:
+            return len(items)
+        return (window or 2 * max(1, sum(client.nthreads().values()))) - len(running)
+
+    running: dict[int, tuple[str, Any]] = {}
+    n = room()
+    first = client.compute([t for _, t in items[:n]])
+    running.update((id(f), (k, f)) for (k, _), f in zip(items[:n], first))
     queue = as_completed(first, with_results=True)
     del first
-    rest = iter(items[window:])
+    rest = iter(items[n:])
     try:
         for fut, value in queue:
             key, _ = running.pop(id(fut))
             fut.release()
-            nxt = next(rest, None)
-            if nxt is not None:
-                f = client.compute(nxt[1])
-                running[id(f)] = (nxt[0], f)
+            for _, (k, task) in zip(range(room()), rest):
+                f = client.compute(task)
+                running[id(f)] = (k, f)
                 queue.add(f)
             yield key, value
     finally:
