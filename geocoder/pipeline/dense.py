@@ -142,11 +142,12 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     code = np.full(base.shape, UNVISITED, dtype=np.int8)
     cr, cc = tile.row0 - wr0, tile.col0 - wc0
     csl = (slice(cr, cr + tile.row1 - tile.row0), slice(cc, cc + tile.col1 - tile.col0))
-    core_fields = g["fields"][slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1].astype(np.float64)
-    ys, xs = np.mgrid[tile.row0 : tile.row1, tile.col0 : tile.col1]
-    core_fields[0] += xs - dc0  # stored as displacement, used as distorted-window position
-    core_fields[1] += ys - dr0
-    params[csl] = np.moveaxis(core_fields, 0, -1)
+    core = params[csl]  # a view: filled in place, no float64 copy of the tile's fields
+    core[:] = np.moveaxis(g["fields"][slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1], 0, -1)
+    xs = np.arange(tile.col0, tile.col1)[None, :] - dc0
+    ys = np.arange(tile.row0, tile.row1)[:, None] - dr0
+    core[..., 0] += xs  # stored as displacement, used as distorted-window position
+    core[..., 1] += ys
     code[csl] = core_code
     local = seeds[useful].copy()
     local[:, 0] -= wr0
@@ -159,10 +160,10 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
                       max_tries=opts.max_tries)
     if new == 0:
         return 0, np.empty((0, 10)), False
-    out = np.moveaxis(params[csl], -1, 0).copy()
-    out[0] -= xs - dc0
-    out[1] -= ys - dr0
-    g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out.astype(np.float32)
+    out = np.moveaxis(core, -1, 0).astype(np.float32)
+    out[0] = core[..., 0] - xs
+    out[1] = core[..., 1] - ys
+    g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out
     g["code"][1 - slot, tile.row0 : tile.row1, tile.col0 : tile.col1] = code[csl]
     # matches made in the halo are the neighbours' seeds for the next round
     halo = code == 0
