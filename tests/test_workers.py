@@ -10,7 +10,7 @@ import dask
 import numpy as np
 import pytest
 import yaml
-from distributed import Client
+from distributed import Client, LocalCluster
 
 from geocoder import register
 from geocoder.runtime import WORKER_CONFIG, compute_as_completed, local_cluster
@@ -117,3 +117,19 @@ def test_tile_tasks_sharing_inputs_run_as_one_graph(client):
     results, held, _ = _compute_counting_futures(client, tasks)
     assert results == {f"t{i}": 9 + i for i in range(40)}
     assert held >= 39, "submitted together, the shared input computed once"
+
+
+def test_the_window_follows_workers_that_join_during_a_stage():
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, Client(cluster) as c:
+        tasks = {f"t{i}": dask.delayed(_square, pure=False)(i, 0.1) for i in range(12)}
+        unfinished, results = [], {}
+        with c.as_current():
+            for n, (key, value) in enumerate(compute_as_completed(tasks)):
+                if n == 0:
+                    cluster.scale(2)
+                    c.wait_for_workers(2, timeout=120)
+                results[key] = value
+                unfinished.append(sum(s.status == "pending" for s in c.futures.values()))
+    assert results == {f"t{i}": i * i for i in range(12)}
+    assert unfinished[0] <= 2, "two per thread of the one worker"
+    assert max(unfinished) > 2, "the second worker's thread gets tasks too"
