@@ -85,51 +85,56 @@ def test_workers_dask_yaml_matches_the_local_worker_configuration():
         assert node == value, key
 
 
-def _square(i: int, pause: float = 0.0) -> int:
-    time.sleep(pause)
+def _square(i: int) -> int:
     return i * i
 
 
-def _compute_counting_futures(client: Client, tasks: dict) -> tuple[dict, int, int]:
-    """Results, and the most futures the client held / held unfinished at a yield."""
-    results, held, unfinished = {}, 0, 0
+def _squares(n: int) -> dict:
+    """Independent tasks whose Dask keys are their names, so the client's futures name them."""
+    return {f"t{i}": dask.delayed(_square, pure=False)(i, dask_key_name=f"t{i}") for i in range(n)}
+
+
+def _compute_counting(client: Client, tasks: dict, on_yield=None) -> tuple[dict, list[int]]:
+    """Results, and at every yield how many tasks were submitted and not yet yielded.
+
+    Counted from the client's futures minus the keys already yielded, so a release still on
+    its way to the scheduler does not count, and nothing depends on how fast tasks run.
+    """
+    results: dict = {}
+    in_flight: list[int] = []
     with client.as_current():
-        for key, value in compute_as_completed(tasks):
+        for n, (key, value) in enumerate(compute_as_completed(tasks)):
             results[key] = value
-            states = list(client.futures.values())
-            held = max(held, len(states))
-            unfinished = max(unfinished, sum(s.status == "pending" for s in states))
-    return results, held, unfinished
+            if on_yield is not None:
+                on_yield(n)
+            in_flight.append(len(set(client.futures) - set(results)))
+    return results, in_flight
 
 
 def test_tile_tasks_of_their_own_run_a_window_at_a_time(client):
     """A finished task's result and inputs stay on its worker until the client fetches
     them, so independent tile tasks are submitted two per worker thread, not all at once."""
-    tasks = {f"t{i}": dask.delayed(_square, pure=False)(i, 0.05) for i in range(40)}
-    results, _, unfinished = _compute_counting_futures(client, tasks)
+    results, in_flight = _compute_counting(client, _squares(40))
     assert results == {f"t{i}": i * i for i in range(40)}
-    assert unfinished <= 2 * sum(client.nthreads().values())
+    assert max(in_flight) <= 2 * sum(client.nthreads().values())
 
 
 def test_tile_tasks_sharing_inputs_run_as_one_graph(client):
     shared = dask.delayed(_square, pure=False)(3)
-    tasks = {f"t{i}": dask.delayed(int.__add__)(shared, i) for i in range(40)}
-    results, held, _ = _compute_counting_futures(client, tasks)
+    tasks = {f"t{i}": dask.delayed(int.__add__)(shared, i, dask_key_name=f"t{i}") for i in range(40)}
+    results, in_flight = _compute_counting(client, tasks)
     assert results == {f"t{i}": 9 + i for i in range(40)}
-    assert held >= 39, "submitted together, the shared input computed once"
+    assert in_flight[0] == 39, "submitted together, the shared input computed once"
 
 
 def test_the_window_follows_workers_that_join_during_a_stage():
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, Client(cluster) as c:
-        tasks = {f"t{i}": dask.delayed(_square, pure=False)(i, 0.1) for i in range(12)}
-        unfinished, results = [], {}
-        with c.as_current():
-            for n, (key, value) in enumerate(compute_as_completed(tasks)):
-                if n == 0:
-                    cluster.scale(2)
-                    c.wait_for_workers(2, timeout=120)
-                results[key] = value
-                unfinished.append(sum(s.status == "pending" for s in c.futures.values()))
+        def grow(n: int) -> None:
+            if n == 0:
+                cluster.scale(2)
+                c.wait_for_workers(2, timeout=120)
+
+        results, in_flight = _compute_counting(c, _squares(12), on_yield=grow)
     assert results == {f"t{i}": i * i for i in range(12)}
-    assert unfinished[0] <= 2, "two per thread of the one worker"
-    assert max(unfinished) > 2, "the second worker's thread gets tasks too"
+    assert in_flight[0] <= 2, "two per thread of the one worker"
+    assert max(in_flight) > 2, "the second worker's thread gets tasks too"
