@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import resource
 import tempfile
 import threading
 import time
@@ -85,8 +86,6 @@ class TaskMemory(WorkerPlugin):
         self.rows: list[tuple] = []
 
     def transition(self, key, start, finish, **kwargs) -> None:
-        import resource
-
         if finish == "executing":
             self.started[key] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         elif start == "executing" and key in self.started:

@@ -132,16 +132,15 @@ def current_client() -> Client | None:
         return None
 
 
-def compute_as_completed(tasks: dict[str, Any], *, window: int | None = None) -> Iterator[tuple[str, Any]]:
+def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     """Compute ``tasks`` (key -> dask collection); yield ``(key, result)`` as each finishes.
 
     On a distributed client results arrive in completion order. Tasks that share inputs
     run as one graph (common inputs computed once). Tasks that are each a single task of
-    their own (inputs embedded, data read by the task) are kept ``window`` in flight, by
-    default two per worker thread at the moment, the next submitted as each finishes: a
-    finished result waits on its worker, with its task's inputs, until the client has
-    fetched it, so submitting all at once let a busy client leave a backlog that grew with
-    the number of tiles. Without a client the tasks are computed together by the current
+    their own (inputs embedded, data read by the task) are kept two per worker thread (of
+    the moment) in flight, the next submitted as each finishes: a finished result waits on
+    its worker, with its task's inputs, until the client has fetched it, so submitting all
+    at once let a busy client leave a backlog that grew with the number of tiles. Without a client the tasks are computed together by the current
     Dask scheduler and yielded in key order.
     """
     if not tasks:
@@ -152,13 +151,13 @@ def compute_as_completed(tasks: dict[str, Any], *, window: int | None = None) ->
         return
     items = list(tasks.items())
     shared = not all(_single_task(t) for _, t in items)
+    running: dict[int, tuple[str, Any]] = {}  # id(future) -> (key, future)
 
     def room() -> int:  # asked again as each task finishes: workers may join or leave
         if shared:
             return len(items)
-        return (window or 2 * max(1, sum(client.nthreads().values()))) - len(running)
+        return 2 * max(1, sum(client.nthreads().values())) - len(running)
 
-    running: dict[int, tuple[str, Any]] = {}
     n = room()
     first = client.compute([t for _, t in items[:n]])
     running.update((id(f), (k, f)) for (k, _), f in zip(items[:n], first))
