@@ -6,6 +6,7 @@ Every command calls the same library functions a notebook would; ``--scheduler``
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
 import sys
@@ -13,9 +14,12 @@ import time
 
 import click
 
-from .errors import GeocoderError
+from .errors import EXIT_ENVIRONMENT, EXIT_INPUT, EXIT_INTERRUPTED, GeocoderError
 
 log = logging.getLogger("geocoder")
+
+#: OSError numbers that mean the machine failed, not the input: the job can resume once fixed.
+ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS, errno.ENOMEM}
 
 
 def _setup_logging(verbose: int, quiet: bool) -> None:
@@ -25,18 +29,66 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
         logging.getLogger(noisy).setLevel(logging.ERROR if verbose < 2 else logging.INFO)
 
 
+def _fail(message: str, code: int) -> None:
+    click.echo(f"geocoder: error: {message}", err=True)
+    sys.exit(code)
+
+
 def _friendly(fn):
-    """Turn geocoder's own errors and bad option values into one line and exit code 2."""
+    """Turn bad option values raised by the library (ValueError) into one line and exit code 2."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except (GeocoderError, ValueError) as exc:
-            click.echo(f"geocoder: error: {exc}", err=True)
-            sys.exit(2)
+        except ValueError as exc:
+            _fail(str(exc), EXIT_INPUT)
 
     return wrapper
+
+
+def _cluster_failure(exc: BaseException) -> bool:
+    """Whether ``exc`` is Dask losing its scheduler or workers (the cluster, not the input)."""
+    from distributed.client import FutureCancelledError
+    from distributed.comm.core import CommClosedError
+
+    try:
+        from distributed.scheduler import KilledWorker
+    except ImportError:  # pragma: no cover
+        KilledWorker = ()
+    return isinstance(exc, (CommClosedError, FutureCancelledError, KilledWorker))
+
+
+class _Main(click.Group):
+    """The ``geocoder`` group: every failure ends as one line ``geocoder: error: ...`` and an exit code.
+
+    2 for bad input and usage, 3 when the machine or the cluster failed (disk full, scheduler
+    lost, output held by another job), 130 when interrupted; a traceback only for a bug.
+    """
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.UsageError as exc:
+            hint = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+            _fail(exc.format_message() + hint, EXIT_INPUT)
+        except click.ClickException as exc:
+            _fail(exc.format_message(), exc.exit_code)
+        except click.exceptions.Abort:
+            _fail("interrupted; finished work is kept, run the same command again to resume", EXIT_INTERRUPTED)
+        except GeocoderError as exc:
+            _fail(str(exc), exc.exit_code)
+        except OSError as exc:
+            if exc.errno not in ENVIRONMENT_ERRNOS:
+                raise
+            where = f"{exc.filename}: " if exc.filename else ""
+            _fail(f"{where}{exc.strerror or exc}; free the resource and run the same command again to resume", EXIT_ENVIRONMENT)
+        except Exception as exc:
+            if not _cluster_failure(exc):
+                raise
+            _fail(f"the Dask cluster failed ({type(exc).__name__}: {exc}); run the same command again to resume",
+                  EXIT_ENVIRONMENT)
+        sys.exit(rv if isinstance(rv, int) else 0)
 
 
 scheduler_option = click.option(
@@ -45,10 +97,13 @@ scheduler_option = click.option(
     default=None,
     help="Dask scheduler address or the cluster.json of 'geocoder cluster up' (default: $DASK_SCHEDULER_ADDRESS, else a local cluster).",
 )
-tile_option = click.option("--tile", default=512, show_default=True, type=int, help="Tile (chunk) size in pixels.")
+tile_option = click.option("--tile", default=512, show_default=True, type=click.IntRange(min=64),
+                           help="Tile (chunk) size in pixels (a multiple of 64 where tiles are matched).")
+overwrite_option = click.option("--overwrite", is_flag=True,
+                                help="Replace an existing output if geocoder wrote it (anything else is never replaced).")
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=_Main, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for Dask's too).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
 @click.version_option(package_name="geocoder")
@@ -68,16 +123,17 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
 @click.option("--out", required=True, help="Output Zarr store: a path or an fsspec URL such as s3://bucket/out.zarr (committed atomically).")
 @click.option("--resampling", default="bilinear", show_default=True, type=click.Choice(["nearest", "bilinear", "cubic", "lanczos"]))
 @tile_option
-@click.option("--band", default=1, show_default=True, help="1-based band used for matching.")
-@click.option("--dist-band", default=None, type=int, help="Band of DISTORTED used for matching (default --band).")
+@click.option("--band", default=1, show_default=True, type=click.IntRange(min=1), help="1-based band used for matching.")
+@click.option("--dist-band", default=None, type=click.IntRange(min=1), help="Band of DISTORTED used for matching (default --band).")
 @click.option("--order", default=2, show_default=True, type=click.IntRange(1, 3), help="Order of the global polynomial.")
 @click.option("--dense/--no-dense", default=True, show_default=True, help="Match every pixel, or stop at the polynomial.")
 @click.option("--nodata", default=None, type=float, help="Extra nodata value of BASE.")
 @click.option("--dist-nodata", default=None, type=float, help="Extra nodata value of DISTORTED.")
 @click.option("--restart", is_flag=True, help="Do not resume an interrupted run of the same job; start afresh.")
+@overwrite_option
 @scheduler_option
 @_friendly
-def register(base, distorted, out, resampling, tile, band, dist_band, order, dense, nodata, dist_nodata, restart, scheduler):
+def register(base, distorted, out, resampling, tile, band, dist_band, order, dense, nodata, dist_nodata, restart, overwrite, scheduler):
     """Register DISTORTED onto the grid of BASE and write OUT (Zarr).
 
     An interrupted run leaves its finished tiles next to OUT; running the same command
@@ -89,7 +145,7 @@ def register(base, distorted, out, resampling, tile, band, dist_band, order, den
     ds = run(
         base, distorted, out=out, resampling=resampling, tile=tile, scheduler=scheduler,
         band=band, dist_band=dist_band, order=order, dense=dense, nodata=nodata, dist_nodata=dist_nodata,
-        resume=not restart,
+        resume=not restart, overwrite=overwrite,
     )
     _print_summary(ds, time.perf_counter() - t0, out)
 
@@ -111,15 +167,20 @@ def _print_summary(ds, seconds: float, out: str | None) -> None:
 @click.argument("out")
 @tile_option
 @click.option("--nodata", default=None, type=float, help="Extra nodata value.")
+@overwrite_option
 @scheduler_option
 @_friendly
-def ingest(src, out, tile, nodata, scheduler):
+def ingest(src, out, tile, nodata, overwrite, scheduler):
     """Write SRC (GeoTIFF/COG, path or URL) to a Zarr v3 store OUT (path or fsspec URL) chunked by tile, CRS kept."""
+    from .outputs import check_output
     from .runtime import dask_client
     from .scene import ingest as run
+    from .scene import open_scene
 
+    check_output(out, inputs=(src,), overwrite=overwrite, option="OUT")
+    open_scene(src, chunks=tile, nodata=nodata)  # a missing or unreadable input fails before a cluster starts
     with dask_client(scheduler=scheduler) as c:
-        scene = run(src, out, tile=tile, nodata=nodata, client=c)
+        scene = run(src, out, tile=tile, nodata=nodata, client=c, overwrite=overwrite)
     click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {tile}")
 
 
@@ -132,12 +193,14 @@ def ingest(src, out, tile, nodata, scheduler):
 @click.option("--snooping", is_flag=True, help="Data snooping with redundancy numbers.")
 @click.option("--scheduler", default=None, envvar="DASK_SCHEDULER_ADDRESS",
               help="Run the adjustment as one task on this Dask cluster (default: in this process; it is gathered on one node).")
+@overwrite_option
 @_friendly
-def adjust(frames_path, points_path, obs_path, out, robust, snooping, scheduler):
+def adjust(frames_path, points_path, obs_path, out, robust, snooping, scheduler, overwrite):
     """Block adjustment (rectification with one frame) from plain files."""
     from .adjust.run import adjust_files
 
-    s = adjust_files(frames_path, points_path, obs_path, out, robust=robust, snooping=snooping, scheduler=scheduler)
+    s = adjust_files(frames_path, points_path, obs_path, out, robust=robust, snooping=snooping, scheduler=scheduler,
+                     overwrite=overwrite)
     click.echo(f"{s['frames']} frame(s), {s['points']} points, {s['observations']} observations, "
                f"{s['rejected']} rejected; sigma0 {s['sigma0']:.3f}; {s['iterations']} iterations")
     if s["check_rms_total_m"] is not None:
@@ -146,9 +209,10 @@ def adjust(frames_path, points_path, obs_path, out, robust, snooping, scheduler)
 
 
 @main.command()
-@click.option("--size", default=1024, show_default=True, help="Side of the demo scene in pixels.")
-@click.option("--seed", default=0, show_default=True, help="Random seed of the scene and the warp.")
-@click.option("--out", default="geocoder-demo", show_default=True, help="Directory for the demo's files.")
+@click.option("--size", default=1024, show_default=True, type=click.IntRange(256, 16384), help="Side of the demo scene in pixels.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Random seed of the scene and the warp.")
+@click.option("--out", default="geocoder-demo", show_default=True,
+              help="Directory for the demo's files: new, empty, or an earlier demo's.")
 @tile_option
 @scheduler_option
 @_friendly
@@ -165,21 +229,22 @@ def demo(size, seed, out, tile, scheduler):
 @click.option("--ortho", required=True, help="Georeferenced orthoimage (projected CRS) used as the ground texture, or 'synthetic'.")
 @click.option("--dem", default=None, help="DEM in the ortho's CRS (default: a fractal surface of --relief metres).")
 @click.option("--out", required=True, help="Output Zarr store (written atomically).")
-@click.option("--seed", default=0, show_default=True, help="Seed of the DEM, the attitude/orbit deviations and the noise.")
-@click.option("--band", default=None, type=int, help="1-based ortho band to render (default all).")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Seed of the DEM, the attitude/orbit deviations and the noise.")
+@click.option("--band", default=None, type=click.IntRange(min=1), help="1-based ortho band to render (default all).")
 @click.option("--sensor", default="atm", show_default=True, type=click.Choice(["atm", "caesar", "asas"]), help="Airborne sensor.")
-@click.option("--tilt", default=0.0, show_default=True, help="Along-track tilt in degrees (asas).")
-@click.option("--rows", default=None, type=int, help="Scan lines (airborne; default: 80 % of the ortho).")
-@click.option("--turbulence", default=0.1, show_default=True, help="Roll/pitch standard deviation in degrees (airborne).")
-@click.option("--pixel", default=None, type=float, help="Pixel size in metres (satellite; default twice the ortho's).")
-@click.option("--relief", default=100.0, show_default=True, help="Relief of the fractal DEM in metres.")
-@click.option("--noise", default=0.02, show_default=True, help="Noise sigma as a fraction of the ortho's dynamic range.")
-@click.option("--gain", default=1.0, show_default=True, help="Radiometric gain.")
-@click.option("--offset", default=0.0, show_default=True, help="Radiometric offset (fraction of the dynamic range).")
+@click.option("--tilt", default=0.0, show_default=True, type=click.FloatRange(-60, 60), help="Along-track tilt in degrees (asas).")
+@click.option("--rows", default=None, type=click.IntRange(min=32), help="Scan lines (airborne; default: 80 % of the ortho).")
+@click.option("--turbulence", default=0.1, show_default=True, type=click.FloatRange(0, 10), help="Roll/pitch standard deviation in degrees (airborne).")
+@click.option("--pixel", default=None, type=click.FloatRange(min=0, min_open=True), help="Pixel size in metres (satellite; default twice the ortho's).")
+@click.option("--relief", default=100.0, show_default=True, type=click.FloatRange(min=0), help="Relief of the fractal DEM in metres.")
+@click.option("--noise", default=0.02, show_default=True, type=click.FloatRange(0, 1), help="Noise sigma as a fraction of the ortho's dynamic range.")
+@click.option("--gain", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True), help="Radiometric gain.")
+@click.option("--offset", default=0.0, show_default=True, type=click.FloatRange(-1, 1), help="Radiometric offset (fraction of the dynamic range).")
 @tile_option
+@overwrite_option
 @scheduler_option
 @_friendly
-def simulate(kind, ortho, dem, out, seed, band, sensor, tilt, rows, turbulence, pixel, relief, noise, gain, offset, tile, scheduler):
+def simulate(kind, ortho, dem, out, seed, band, sensor, tilt, rows, turbulence, pixel, relief, noise, gain, offset, tile, overwrite, scheduler):
     """Render a synthetic KIND scanner image over ORTHO with the exact ground point of every pixel."""
     from .pipeline.simulate import Radiometry
     from .pipeline.simulate import simulate as run
@@ -187,7 +252,7 @@ def simulate(kind, ortho, dem, out, seed, band, sensor, tilt, rows, turbulence, 
     ds = run(
         kind, ortho, out=out, dem=dem, seed=seed, band=band, sensor=sensor, rows=rows, tilt_deg=tilt,
         turbulence_deg=turbulence, pixel=pixel, relief=relief, radiometry=Radiometry(noise=noise, gain=gain, offset=offset),
-        tile=tile, scheduler=scheduler,
+        tile=tile, scheduler=scheduler, overwrite=overwrite,
     )
     click.echo(
         f"wrote {out}: {kind} {ds.attrs['sensor_class']} image {ds.sizes['y']} x {ds.sizes['x']} px, "
@@ -209,7 +274,7 @@ dir_option = click.option("--dir", "directory", default=None,
 @click.option("--tls", is_flag=True, help="TLS with certificates made for this cluster; clients need them (cluster.json points to them).")
 @click.option("--memory-limit", default="auto", show_default=True, help="Memory limit per worker (Dask syntax).")
 @click.option("--host", default="127.0.0.1", show_default=True, help="Interface the scheduler listens on.")
-@click.option("--port", default=0, show_default=True, help="Scheduler port (0: any free one).")
+@click.option("--port", default=0, show_default=True, type=click.IntRange(0, 65535), help="Scheduler port (0: any free one).")
 @dir_option
 @_friendly
 def cluster_up(workers, tls, memory_limit, host, port, directory):

@@ -7,6 +7,7 @@ import os
 import numpy as np
 from affine import Affine
 
+from .outputs import claim_directory
 from .pipeline.register import RegisterSummary, register
 from .scene import write_geotiff
 from .simulate.texture import synthetic_ortho
@@ -18,9 +19,10 @@ def run_demo(*, size: int = 1024, seed: int = 0, directory: str = "geocoder-demo
     quadratic field of up to 15 px, new noise, gain and offset), register them, and
     report the error of the displacement field against the known truth.
 
+    ``directory`` must be new, empty or an earlier demo's (nothing else is written into).
     Returns the lines to print.
     """
-    os.makedirs(directory, exist_ok=True)
+    directory = claim_directory(directory, product="demo")
     margin = 48
     source = synthetic_ortho((size + 2 * margin, size + 2 * margin), seed=seed)
     pair = make_pair(source, shape=(size, size), seed=seed, max_displacement=15.0, margin=margin)
@@ -30,7 +32,7 @@ def run_demo(*, size: int = 1024, seed: int = 0, directory: str = "geocoder-demo
     transform = Affine(2.0, 0.0, 500000.0, 0.0, -2.0, 4000000.0)
     write_geotiff(base_path, pair.base, transform=transform, crs="EPSG:32633")
     write_geotiff(dist_path, pair.distorted)
-    ds = register(base_path, dist_path, out=out, tile=tile, scheduler=scheduler, client=client)
+    ds = register(base_path, dist_path, out=out, tile=tile, scheduler=scheduler, client=client, overwrite=True)
     import json
 
     summary = RegisterSummary(**json.loads(ds.attrs["summary"]))

@@ -1,6 +1,11 @@
-"""Exceptions and warnings raised by geocoder."""
+"""Exceptions and warnings raised by geocoder, and the exit code the CLI gives each."""
 
 from __future__ import annotations
+
+#: Exit codes of the command line (documented in the README).
+EXIT_INPUT = 2  # bad input or usage: a rerun with the same arguments fails the same way
+EXIT_ENVIRONMENT = 3  # the machine or the cluster failed (disk full, scheduler lost, output busy)
+EXIT_INTERRUPTED = 130  # Ctrl-C; an interrupted job keeps its finished work for a rerun
 
 
 class GeocoderError(Exception):
@@ -9,6 +14,8 @@ class GeocoderError(Exception):
     The message is a single line that names the file (when there is one) and
     the problem, so the CLI can print it as it is.
     """
+
+    exit_code = EXIT_INPUT
 
 
 class InputError(GeocoderError):
@@ -20,8 +27,26 @@ class InputError(GeocoderError):
         super().__init__(f"{self.path}: {problem}" if self.path else problem)
 
 
+class OutputError(InputError):
+    """An output location that geocoder refuses to write (it would replace or hide data)."""
+
+
 class MatchingError(GeocoderError):
     """The images could not be matched (too few tie points, no overlap)."""
+
+
+class EnvironmentFailure(GeocoderError):
+    """The machine or the cluster failed: disk full, scheduler lost, output held by another job.
+
+    Not the input's fault: a rerun after the cause is fixed resumes the job.
+    """
+
+    exit_code = EXIT_ENVIRONMENT
+
+    def __init__(self, resource: object, problem: str) -> None:
+        self.resource = str(resource) if resource is not None else None
+        self.problem = problem
+        super().__init__(f"{self.resource}: {problem}" if self.resource else problem)
 
 
 class GeocoderWarning(UserWarning):

@@ -9,9 +9,9 @@ from contextlib import contextmanager
 from typing import Any, Iterator
 
 import dask
-from distributed import Client, LocalCluster, as_completed
+from distributed import Client, LocalCluster, WorkerPlugin, as_completed
 
-from .errors import GeocoderError
+from .errors import EnvironmentFailure, GeocoderError
 
 log = logging.getLogger(__name__)
 
@@ -37,8 +37,12 @@ def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "a
     :data:`WORKER_CONFIG` (a nanny hands its configuration to the worker it restarts).
     """
     n = n_workers or max(1, os.cpu_count() or 1)
-    with dask.config.set(WORKER_CONFIG):
+    # a task's error reaches the client, which reports it; when the caller keeps Dask's own
+    # errors quiet (the CLI unless -vv) the workers do not also log it with its traceback
+    quiet = logging.getLogger("distributed").getEffectiveLevel() >= logging.ERROR
+    with dask.config.set(WORKER_CONFIG), _interrupts_ignored_by_children():
         return LocalCluster(
+            silence_logs=logging.CRITICAL if quiet else logging.WARNING,
             n_workers=n,
             threads_per_worker=1,
             processes=True,
@@ -48,12 +52,57 @@ def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "a
         )
 
 
-def connect(scheduler: str, *, timeout: float = 60) -> Client:
+@contextmanager
+def _interrupts_ignored_by_children() -> Iterator[None]:
+    """Processes started inside the block ignore SIGINT (an ignored signal stays ignored in a child).
+
+    A Ctrl-C in a terminal reaches every process of the foreground group: the local
+    cluster's workers would each print a KeyboardInterrupt traceback while the client, which
+    handles the interrupt, shuts them down anyway. Outside the main thread nothing changes.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+class IgnoreInterrupts(WorkerPlugin):
+    """Worker plugin: the worker process ignores SIGINT (its client handles Ctrl-C and stops it).
+
+    Registered on the local clusters geocoder starts, so that a worker its nanny restarts
+    ignores it too.
+    """
+
+    name = "geocoder-ignore-interrupts"
+
+    def setup(self, worker) -> None:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def connect(scheduler: str, *, timeout: float = 10) -> Client:
     """A client of a running cluster.
 
     ``scheduler`` is an address (``tcp://host:8786``, ``tls://...``; TLS certificates come
     from Dask's configuration, ``DASK_DISTRIBUTED__COMM__TLS__*``) or the ``cluster.json``
     written by ``geocoder cluster up`` (address and certificates).
+
+    Raises
+    ------
+    GeocoderError
+        On an address that cannot be parsed or TLS without certificates (exit code 2).
+    EnvironmentFailure
+        When the scheduler does not answer within ``timeout`` seconds (exit code 3).
     """
     security = None
     address = scheduler
@@ -68,16 +117,28 @@ def connect(scheduler: str, *, timeout: float = 60) -> Client:
             from .certs import client_security
 
             security = client_security(info["tls"])
+    if str(address).startswith("tls://") and security is None and not dask.config.get("distributed.comm.tls.ca-file", None):
+        raise GeocoderError(
+            f"{address}: TLS needs certificates: pass the cluster.json of 'geocoder cluster up' as --scheduler, or set "
+            "DASK_DISTRIBUTED__COMM__TLS__CA_FILE, DASK_DISTRIBUTED__COMM__TLS__CLIENT__CERT and ..._CLIENT__KEY"
+        )
     try:
         client = Client(address, security=security, timeout=timeout)
     except (OSError, TimeoutError) as exc:
-        raise GeocoderError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+        raise EnvironmentFailure(address, f"the Dask scheduler does not answer ({_first_line(exc)}); is it running?") from exc
+    except (ValueError, TypeError) as exc:  # an address or a security setting Dask cannot use
+        raise GeocoderError(f"{address}: not a usable Dask scheduler address ({_first_line(exc)})") from exc
     try:
         check_versions(client)
     except BaseException:
         client.close()
         raise
     return client
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _geocoder_version() -> str:
@@ -118,6 +179,7 @@ def dask_client(client: Client | None = None, scheduler: str | None = None, n_wo
             yield c
         return
     with local_cluster(n_workers) as cluster, Client(cluster) as c, c.as_current():
+        c.register_plugin(IgnoreInterrupts())
         log.info("local Dask cluster with %d workers; dashboard %s", len(cluster.workers), c.dashboard_link)
         yield c
 

@@ -19,6 +19,7 @@ from affine import Affine
 
 from . import storage
 from .errors import InputError
+from .outputs import check_output, commit_output, product_attrs
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 
 IMAGE_VAR = "image"
@@ -27,6 +28,24 @@ IMAGE_VAR = "image"
 def _is_zarr(path: str) -> bool:
     p = path.rstrip("/")
     return p.endswith(".zarr") or (os.path.isdir(p) and os.path.exists(os.path.join(p, "zarr.json")))
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def is_read_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is GDAL/rasterio failing to decode a file (truncated, damaged), not the machine.
+
+    An error raised on a worker may arrive as a plain ``Exception`` holding the original's
+    repr (when it does not unpickle), so its text is checked too.
+    """
+    import rasterio.errors
+
+    if isinstance(exc, rasterio.errors.RasterioError):
+        return True
+    return any(name in f"{type(exc).__name__} {exc!r}" for name in ("RasterioIOError", "RasterioError", "CPLE_"))
 
 
 def _chunks(chunks: int | dict | None) -> dict:
@@ -93,8 +112,9 @@ def open_scene(
     except InputError:
         raise
     except Exception as exc:  # rasterio/zarr raise many types; name the file and the cause
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(spath, f"cannot be read as a raster ({msg})") from None
+        raise InputError(spath, f"cannot be read as a raster ({_first_line(exc)})") from exc
+    if "complex" in source_dtype:
+        raise InputError(spath, f"has complex pixels ({source_dtype}); write the amplitude or the real part to a real-valued raster first")
     if da.ndim != 3 or da.dims != ("band", "y", "x"):
         raise InputError(spath, f"expected dims (band, y, x), found {da.dims}")
     if bands is not None:
@@ -135,6 +155,7 @@ def ingest(
     bands: list[int] | None = None,
     client=None,
     atomic: bool = True,
+    overwrite: bool = False,
 ) -> xr.DataArray:
     """Write a scene to a Zarr v3 store chunked by tile, CRS and transform kept.
 
@@ -146,31 +167,49 @@ def ingest(
     ``atomic=False`` writes in place, for callers that record completion themselves (a
     job's manifest): on object stores it saves copying the store once.
 
+    An existing ``out`` is refused unless ``overwrite``, and even then only a store geocoder
+    wrote is replaced (:func:`geocoder.outputs.check_output`); so is an ``out`` equal to,
+    inside or containing ``src`` or the working directory.
+
+    Raises
+    ------
+    InputError
+        If ``src`` cannot be read (missing, truncated, damaged) or ``out`` is refused.
+
     Returns
     -------
     xarray.DataArray
         The scene re-opened from the new store.
     """
+    if atomic:
+        out = check_output(out, inputs=(src,), overwrite=overwrite, option="OUT")
     scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands)
     scene = scene.chunk(_chunks(tile))
     out = storage.normalize(out)
     tmp = storage.temporary_sibling(out) if atomic else out
     ds = scene.to_dataset(name=IMAGE_VAR)
+    ds.attrs.update(product_attrs("scene"))
     ds[IMAGE_VAR].attrs = {k: v for k, v in scene.attrs.items() if k != "georeferenced"}
     ds[IMAGE_VAR].attrs["georeferenced"] = int(bool(scene.attrs.get("georeferenced")))
     ds[IMAGE_VAR].encoding = {}
     try:
         delayed = ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False)
-        if client is not None:
-            client.compute(delayed).result()
-        else:
-            delayed.compute()
+        try:
+            if client is not None:
+                client.compute(delayed).result()
+            else:
+                delayed.compute()
+        except Exception as exc:
+            if is_read_error(exc):
+                raise InputError(scene.attrs.get("source", "input"),
+                                 f"cannot be read, the file is truncated or damaged ({_first_line(exc)})") from exc
+            raise
     except BaseException:
         if atomic:
             storage.remove(tmp)
         raise
     if atomic:
-        storage.commit_store(tmp, out)
+        commit_output(tmp, out, overwrite=overwrite)
     reopened = open_scene(out, chunks=tile)
     reopened.attrs["source"] = scene.attrs.get("source", out)
     return reopened

@@ -144,6 +144,29 @@ def remove(location: str) -> None:
         fs.invalidate_cache(path)
 
 
+def remove_contents(location: str, *, keep: tuple[str, ...] = ()) -> None:
+    """Delete everything directly in the directory ``location`` except the names in ``keep``."""
+    if not is_url(location):
+        try:
+            names = os.listdir(location)
+        except FileNotFoundError:
+            return
+        for name in names:
+            if name not in keep:
+                remove(os.path.join(location, name))
+        return
+    fs, path = _fs(location)
+    fs.invalidate_cache(path)
+    try:
+        entries = fs.ls(path, detail=False)
+    except FileNotFoundError:
+        return
+    for entry in entries:
+        name = entry.rstrip("/").rsplit("/", 1)[-1]
+        if name not in keep:
+            remove(join(location, name))
+
+
 def identity(location: str) -> dict:
     """What tells a changed input from an unchanged one: location, size and time or ETag.
 
@@ -177,14 +200,16 @@ def copy_store_body(tmp: str, final: str) -> None:
 def commit_store(tmp: str, final: str) -> None:
     """Make the finished store ``tmp`` appear at ``final``, replacing what was there.
 
-    Local: renames (the old store stays whole until the new one takes its name). Object
+    Callers decide whether ``final`` may be replaced (:func:`geocoder.outputs.commit_output`).
+    Local: renames (the old store stays whole, under a hidden name, until the new one has
+    taken its name). Object
     stores: the old store is unpublished first (its root metadata deleted), then removed;
     the new store's objects are copied on the server, the root metadata last, and ``tmp``
     is removed.
     """
     if not is_url(final):
         if os.path.exists(final):
-            old = f"{final}.old-{uuid.uuid4().hex[:8]}"
+            old = sibling(final, f".{split(final)[1]}.old-{uuid.uuid4().hex[:8]}")
             os.rename(final, old)
             os.rename(tmp, final)
             shutil.rmtree(old, ignore_errors=True)

@@ -9,6 +9,8 @@ import os
 import numpy as np
 
 from ..errors import InputError
+from ..outputs import check_output, commit_output, write_marker
+from ..storage import remove, temporary_sibling
 from .block import build_problem, check_errors
 from .io import read_frames, read_observations, read_points, write_frames, write_points
 from .solver import AdjustOptions, adjust
@@ -37,23 +39,31 @@ def residual_svg(path: str, xy: np.ndarray, res: np.ndarray, active: np.ndarray,
 
 
 def adjust_files(frames_path: str, points_path: str, obs_path: str, out: str, *, robust: bool = False,
-                 snooping: bool = False, tie_height_sigma: float | None = 15.0, client=None, scheduler: str | None = None) -> dict:
+                 snooping: bool = False, tie_height_sigma: float | None = 15.0, client=None, scheduler: str | None = None,
+                 overwrite: bool = False) -> dict:
     """Run a block adjustment from files; write ``frames.json``, ``points.csv``,
     ``residuals.csv``, ``report.md`` and ``residuals_frame<k>.svg`` into ``out``.
 
     Points with role ``check`` are withheld and measured through the adjusted models. The
     adjustment is gathered on one node: this process, or with ``client`` / ``scheduler`` one
     task on a worker of that cluster (the files must be on a filesystem the worker sees).
+
+    ``out`` is written whole: into a hidden sibling, renamed into place when complete. An
+    existing ``out`` is refused unless ``overwrite`` and geocoder wrote it (an empty
+    directory is fine); so is one equal to or containing an input or the working directory.
     """
     if client is not None or scheduler:
         from ..runtime import dask_client
 
         with dask_client(client, scheduler) as c:
             return c.submit(adjust_files, frames_path, points_path, obs_path, out, robust=robust, snooping=snooping,
-                            tie_height_sigma=tie_height_sigma, pure=False).result()
+                            tie_height_sigma=tie_height_sigma, overwrite=overwrite, pure=False).result()
     frames, specs = read_frames(frames_path)
     points = read_points(points_path)
     obs = read_observations(obs_path)
+    final = check_output(out, inputs=(frames_path, points_path, obs_path), overwrite=overwrite)
+    if not os.path.isdir(os.path.dirname(final)):
+        raise InputError(final, "the output's parent directory does not exist")
     if len(obs) and obs.frame.max() >= len(frames):
         raise InputError(obs_path, f"refers to frame {int(obs.frame.max())}, but {frames_path} has {len(frames)}")
     unknown = np.setdiff1d(obs.point, points.id)
@@ -64,7 +74,19 @@ def adjust_files(frames_path: str, points_path: str, obs_path: str, out: str, *,
     problem, _ = build_problem(frames, used, obs, tie_height_sigma=tie_height_sigma)
     options = AdjustOptions(max_iter=20, tol=1e-3, robust=robust, snooping=snooping)
     result = adjust(problem, options)
-    os.makedirs(out, exist_ok=True)
+    out = temporary_sibling(final)
+    try:
+        summary = _write_outputs(out, frames, specs, used, check, obs, result)
+        write_marker(out, "adjust")
+        commit_output(out, final, overwrite=overwrite)
+    except BaseException:
+        remove(out)
+        raise
+    return summary
+
+
+def _write_outputs(out, frames, specs, used, check, obs, result) -> dict:
+    os.makedirs(out)
     write_frames(os.path.join(out, "frames.json"), specs, result.params, result.param_cov)
     write_points(os.path.join(out, "points.csv"), used, result.ground)
     keep = np.isin(obs.point, used.id)

@@ -237,7 +237,19 @@ def _prepare(
         raise ValueError(f"x and y must have the same shape, got {x.shape} and {y.shape}")
     is_2d = image.ndim == 2
     image3 = image[np.newaxis] if is_2d else image
-    return image3, x.ravel(), y.ravel(), is_2d, x.shape
+    height, width = image3.shape[-2:]
+    return image3, _onto_edge(x.ravel(), width), _onto_edge(y.ravel(), height), is_2d, x.shape
+
+
+#: Positions at most this far (pixels) outside the first or last pixel centre are moved onto
+#: it: a fitted mapping's round-off (an identity fit gives 1e-5 px) must not leave the edge
+#: pixels of two aligned images without a value.
+EDGE = 1e-3
+
+
+def _onto_edge(v: np.ndarray, size: int) -> np.ndarray:
+    v = np.where((v < 0.0) & (v >= -EDGE), 0.0, v)
+    return np.where((v > size - 1) & (v <= size - 1 + EDGE), float(size - 1), v)
 
 
 def sample(

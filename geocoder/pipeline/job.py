@@ -21,6 +21,7 @@ import time
 from typing import Any, Callable
 
 from .. import progress, storage
+from ..outputs import LOCK_FILE, OutputLock
 from ..runtime import compute_as_completed
 
 MANIFEST = "manifest.json"
@@ -45,19 +46,37 @@ class Job:
         Directory or fsspec URL (created if needed).
     key : str
         The job's fingerprint; a directory holding another job's files is emptied.
+    target : str, optional
+        The output the job writes: the job holds the directory's lock
+        (:class:`geocoder.outputs.OutputLock`) from here until :meth:`release` or
+        :meth:`remove`, so that a second job to the same output is refused.
+
+    Raises
+    ------
+    geocoder.errors.EnvironmentFailure
+        If another live job holds the lock.
     """
 
-    def __init__(self, path: str, key: str) -> None:
+    def __init__(self, path: str, key: str, target: str | None = None) -> None:
         self.path = storage.normalize(path)
         self.key = key
-        manifest = self._read_manifest()
-        if manifest is not None and manifest.get("fingerprint") != key:
-            storage.remove(self.path)
-            manifest = None
         if not storage.is_url(self.path):
             os.makedirs(self.path, exist_ok=True)
+        self.lock = OutputLock(self.path, target or self.path)
+        self.lock.acquire()
+        try:
+            self._open()
+        except BaseException:
+            self.lock.release()
+            raise
+
+    def _open(self) -> None:
+        manifest = self._read_manifest()
+        if manifest is not None and manifest.get("fingerprint") != self.key:
+            storage.remove_contents(self.path, keep=(LOCK_FILE,))
+            manifest = None
         self.resumed = manifest is not None and bool(manifest.get("stages"))
-        self.manifest = manifest or {"fingerprint": key, "created": time.time(), "stages": {}}
+        self.manifest = manifest or {"fingerprint": self.key, "created": time.time(), "stages": {}}
         self.tiles: dict[str, dict[str, int]] = {}
         self.recomputed = 0
         self._interrupted_found = not self.resumed
@@ -164,9 +183,14 @@ class Job:
             "recomputed_fraction": (self.recomputed / total) if (self.resumed and total) else 0.0,
         }
 
+    def release(self) -> None:
+        """Keep the working directory for a rerun, and give up its lock."""
+        self.lock.release()
+
     def remove(self) -> None:
-        """Delete the working directory (after the job's output is committed)."""
+        """Delete the working directory (after the job's output is committed), lock included."""
         storage.remove(self.path)
+        self.lock.held = False
 
 
 def _compute(tasks: dict[str, Any], phase: str, *, total: int, skipped: int = 0,

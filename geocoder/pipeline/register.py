@@ -21,7 +21,8 @@ import numpy as np
 import xarray as xr
 
 from .. import progress, storage
-from ..errors import GeocoderError, InputError, MatchingError
+from ..errors import EnvironmentFailure, GeocoderError, InputError, MatchingError, OutputError
+from ..outputs import check_output, commit_output, product_attrs
 from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
@@ -226,6 +227,7 @@ def register(
     dist_nodata: float | None = None,
     options: RegisterOptions | None = None,
     resume: bool = True,
+    overwrite: bool = False,
     show_progress: Progress | bool | None = None,
 ) -> xr.Dataset:
     """Register ``distorted`` onto the grid of ``base``.
@@ -259,6 +261,9 @@ def register(
         Continue the unfinished job writing ``out`` (same inputs, options and version):
         tiles finished by an earlier, interrupted run are not computed again. False
         starts afresh.
+    overwrite : bool
+        Replace an existing ``out`` if geocoder wrote it (never anything else). An output
+        equal to, inside or containing an input or the working directory is always refused.
     show_progress : Progress or bool, optional
         Progress receiver (True: a bar per phase on standard error).
 
@@ -276,7 +281,7 @@ def register(
     )
     opts.validate()
     if out is not None:
-        out = storage.normalize(out)
+        out = check_output(out, inputs=(base, distorted), overwrite=overwrite)
         if not storage.is_url(out) and not os.path.isdir(os.path.dirname(out)):
             raise InputError(out, "the output's parent directory does not exist")
     bscene = base if isinstance(base, xr.DataArray) else open_scene(base, chunks=tile, nodata=nodata)
@@ -284,76 +289,121 @@ def register(
     for scene, b in ((bscene, opts.band), (dscene, opts.dist_band or opts.band)):
         if not 1 <= b <= scene.sizes["band"]:
             raise InputError(scene.attrs.get("source"), f"has {scene.sizes['band']} band(s); band {b} does not exist")
+    for scene in (bscene, dscene):
+        _check_size(scene)
     summary = RegisterSummary(base=bscene.attrs.get("source", "base"), distorted=dscene.attrs.get("source", "distorted"))
     timer = _Timer(summary)
-    if out is not None:
-        job = _open_job(out, _job_key(base, distorted, bscene, dscene, opts, nodata, dist_nodata), resume)
-    else:
-        job = Job(tempfile.mkdtemp(prefix=".geocoder-job-"), "in-memory")
+    key = _job_key(base, distorted, bscene, dscene, opts, nodata, dist_nodata) if out is not None else "in-memory"
+    # the lock first: a second job to the same output is refused before it starts a cluster
+    job = _open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     if job.resumed:
         log.info("resuming the job in %s", job.path)
-    finished = False
+    keep = False  # whether the job directory stays for a rerun to resume
+    connected = False
     try:
         with progress.reporting(show_progress), dask_client(client, scheduler) as c:
+            connected = True
             progress.current().message(f"Dask dashboard: {c.dashboard_link}")
-            with timer("ingest"):
-                bscene = _ingest(job, "base", bscene, opts.tile, c)
-                dscene = _ingest(job, "distorted", dscene, opts.tile, c)
-            breader = WindowReader(job.file("base.zarr"))
-            dreader = WindowReader(job.file("distorted.zarr"))
-            tp, mapping, coarse = find_tiepoints(bscene, dscene, breader, dreader, opts, summary, timer, job)
-            chunks = bscene.data.chunks[1:]
-            grid = TileGrid.from_chunks(chunks)
-            dx, dy = polynomial_displacement(mapping, chunks)
-            extra = {}
-            if opts.dense:
-                with timer("dense matching"):
-                    result = grow_tiles(
-                        breader, dreader, grid, seeds_from_tiepoints(tp, mapping), mapping, job.file("dense.zarr"),
-                        band=opts.band - 1, dist_band=(opts.dist_band or opts.band) - 1, opts=opts.matching, job=job,
-                    )
-                summary.dense_rounds = result.rounds
-                summary.dense_converged = result.converged
-                summary.dense_new_per_round = result.new_per_round
-                field_ = dense_field(result, (dx, dy), opts.postfilter)
-                dx, dy = field_["dx"], field_["dy"]
-                extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
-            registered = resample(dreader, dx, dy, method=opts.resampling)
-            status = model_status(registered)
-            if opts.dense:
-                status = da.where(status == Status.OUTSIDE, status, field_["status"]).astype(np.uint8)
-            ds = _output_dataset(bscene, registered, dx, dy, status, mapping, coarse, opts, extra)
-            with timer("resampling"):
-                if out is None:
-                    ds = ds.compute()
-                    counts = np.bincount(ds.status.values.ravel(), minlength=len(Status))
-                else:
-                    store = job.file("output.zarr")
-                    if not job.done("output-created"):
-                        ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
-                        job.save("output-created")
-                    counts = write_tiles(ds, store, grid, job)
+            ds, counts, tp = _run(job, bscene, dscene, opts, summary, timer, c, in_memory=out is None)
             summary.status_counts = {Status(i).name.lower(): int(n) for i, n in enumerate(counts) if n}
             summary.job = job.report()
             ds.attrs["summary"] = json.dumps(asdict(summary))
             if out is None:
                 ds.attrs["tiepoints"] = _tiepoint_dataset(tp)
-                finished = True
                 return ds
+            store = job.file("output.zarr")
             _tiepoint_dataset(tp).to_zarr(store, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
             import zarr
 
             zarr.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
-            storage.commit_store(store, out)
-            finished = True
+            commit_output(store, out, overwrite=overwrite)
+    except (EnvironmentFailure, OutputError):
+        keep = True  # disk full, scheduler lost, output taken meanwhile: a rerun resumes
+        raise
     except GeocoderError:
-        finished = True  # bad input or no match: a rerun would fail the same way, keep nothing
+        # bad input or no match: a rerun would fail the same way, keep nothing; but a bad
+        # scheduler address must not cost the finished work of an earlier run
+        keep = job.resumed and not connected
+        raise
+    except BaseException:
+        keep = True  # interrupted or crashed: a rerun resumes
         raise
     finally:
-        # an interrupted job keeps its directory so that a rerun resumes; an in-memory one never resumes
-        if finished or out is None:
+        if keep and out is not None:
+            job.release()
+        else:
             job.remove()
     return xr.open_zarr(out, decode_coords="all", consolidated=False)
+
+
+def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSummary, timer, c, *, in_memory: bool):
+    """The stages of :func:`register` inside a job; the dataset, its status counts and the tie points."""
+    with timer("ingest"):
+        bscene = _ingest(job, "base", bscene, opts.tile, c)
+        dscene = _ingest(job, "distorted", dscene, opts.tile, c)
+    if not job.done("content"):
+        _check_content(bscene, opts.band)
+        _check_content(dscene, opts.dist_band or opts.band)
+        job.save("content")
+    breader = WindowReader(job.file("base.zarr"))
+    dreader = WindowReader(job.file("distorted.zarr"))
+    tp, mapping, coarse = find_tiepoints(bscene, dscene, breader, dreader, opts, summary, timer, job)
+    chunks = bscene.data.chunks[1:]
+    grid = TileGrid.from_chunks(chunks)
+    dx, dy = polynomial_displacement(mapping, chunks)
+    extra = {}
+    if opts.dense:
+        with timer("dense matching"):
+            result = grow_tiles(
+                breader, dreader, grid, seeds_from_tiepoints(tp, mapping), mapping, job.file("dense.zarr"),
+                band=opts.band - 1, dist_band=(opts.dist_band or opts.band) - 1, opts=opts.matching, job=job,
+            )
+        summary.dense_rounds = result.rounds
+        summary.dense_converged = result.converged
+        summary.dense_new_per_round = result.new_per_round
+        field_ = dense_field(result, (dx, dy), opts.postfilter)
+        dx, dy = field_["dx"], field_["dy"]
+        extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
+    registered = resample(dreader, dx, dy, method=opts.resampling)
+    status = model_status(registered)
+    if opts.dense:
+        status = da.where(status == Status.OUTSIDE, status, field_["status"]).astype(np.uint8)
+    ds = _output_dataset(bscene, registered, dx, dy, status, mapping, coarse, opts, extra)
+    with timer("resampling"):
+        if in_memory:
+            ds = ds.compute()
+            counts = np.bincount(ds.status.values.ravel(), minlength=len(Status))
+        else:
+            store = job.file("output.zarr")
+            if not job.done("output-created"):
+                ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
+                job.save("output-created")
+            counts = write_tiles(ds, store, grid, job)
+    return ds, counts, tp
+
+
+#: Smallest image side geocoder registers (interest windows, patches and pyramids need room).
+MIN_SIDE = 32
+
+
+def _check_size(scene: xr.DataArray) -> None:
+    h, w = scene.sizes["y"], scene.sizes["x"]
+    if min(h, w) < MIN_SIDE:
+        raise InputError(scene.attrs.get("source"), f"is {w} x {h} px; registration needs at least {MIN_SIDE} x {MIN_SIDE}")
+
+
+def _check_content(scene: xr.DataArray, band: int) -> None:
+    """Refuse a matching band with fewer than ``MIN_SIDE**2`` valid pixels or one value only."""
+    image = scene.data[band - 1]
+    valid = da.isfinite(image)
+    n, lo, hi = dask.compute(valid.sum(), da.where(valid, image, np.inf).min(), da.where(valid, image, -np.inf).max())
+    source = scene.attrs.get("source")
+    if n == 0:
+        raise InputError(source, f"band {band} has no valid pixels (all nodata)")
+    if n < MIN_SIDE**2:
+        raise InputError(source, f"band {band} has only {int(n)} valid pixels; registration needs at least {MIN_SIDE**2}")
+    if lo == hi:
+        raise InputError(source, f"band {band} is constant ({float(lo):g} everywhere): there is nothing to match")
 
 
 def job_directory(out: str) -> str:
@@ -367,12 +417,12 @@ def job_directory(out: str) -> str:
 
 def _open_job(out: str, key: str, resume: bool) -> Job:
     try:
-        job = Job(job_directory(out), key)
+        job = Job(job_directory(out), key, target=out)
         if not resume and job.resumed:
             job.remove()
-            job = Job(job_directory(out), key)
+            job = Job(job_directory(out), key, target=out)
     except OSError as exc:  # no such bucket, no permission, unreachable endpoint ...
-        raise InputError(out, f"cannot write the job's files beside the output ({type(exc).__name__}: {exc})") from None
+        raise InputError(out, f"cannot write the job's files beside the output ({type(exc).__name__}: {exc})") from exc
     return job
 
 
@@ -466,6 +516,7 @@ def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse:
             "resampling": opts.resampling,
             "polynomial_terms": json.dumps(exponents(opts.order)),
             "source_base": scene.attrs.get("source", ""),
+            **product_attrs("register"),
         }
     )
     return ds

@@ -23,13 +23,15 @@ import numpy as np
 import xarray as xr
 from affine import Affine
 
+from ..errors import InputError
 from ..geometry import pixel_to_world, world_to_pixel
+from ..outputs import check_output, commit_output, product_attrs
 from ..runtime import dask_client
 from ..scene import WindowReader, ingest, open_scene
 from ..simulate.airborne import AirborneScanner, Attitude, asas, atm, caesar
 from ..simulate.satellite import LineScanner, ecef_to_geodetic, landsat_mss_like
 from ..simulate.terrain import Terrain, fractal_dem
-from ..storage import commit_store, temporary_sibling
+from ..storage import temporary_sibling
 
 AIRBORNE = {"atm": atm, "caesar": caesar, "asas": asas}
 
@@ -186,6 +188,7 @@ def simulate(
     tile: int = 512,
     client=None,
     scheduler: str | None = None,
+    overwrite: bool = False,
 ) -> xr.Dataset:
     """Render a synthetic ``airborne`` or ``satellite`` scanner image with per-pixel truth.
 
@@ -210,6 +213,8 @@ def simulate(
         Gain, offset and noise of the rendered image.
     resampling : str
         Interpolator used to sample the ortho.
+    overwrite : bool
+        Replace an existing ``out`` if geocoder wrote it (never anything else).
 
     Returns
     -------
@@ -218,13 +223,15 @@ def simulate(
     """
     if kind not in ("airborne", "satellite"):
         raise ValueError(f"kind must be 'airborne' or 'satellite', got {kind!r}")
-    out = os.fspath(out)
+    out = check_output(out, inputs=(ortho, dem), overwrite=overwrite)
+    if not os.path.isdir(os.path.dirname(out)):
+        raise InputError(out, "the output's parent directory does not exist")
     work = tempfile.mkdtemp(prefix=".geocoder-work-", dir=os.path.dirname(os.path.abspath(out)))
     try:
         if os.fspath(ortho) == SYNTHETIC:
             ortho = _synthetic_ortho(work, seed)
         return _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, turbulence_deg, pixel,
-                         relief, radiometry, resampling, tile, client, scheduler)
+                         relief, radiometry, resampling, tile, client, scheduler, overwrite)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -244,11 +251,9 @@ def _synthetic_ortho(work: str, seed: int) -> str:
 
 
 def _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, turbulence_deg, pixel, relief,
-              radiometry, resampling, tile, client, scheduler) -> xr.Dataset:
+              radiometry, resampling, tile, client, scheduler, overwrite) -> xr.Dataset:
     scene = open_scene(ortho, chunks=tile, bands=[band] if band else None)
     if not scene.attrs.get("georeferenced") or not scene.rio.crs.is_projected:
-        from ..errors import InputError
-
         raise InputError(ortho, "the ortho must be georeferenced in a projected CRS (metres)")
     transform = scene.rio.transform()
     if dem is not None:
@@ -296,10 +301,11 @@ def _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, t
                     "seed": int(seed),
                     "ortho": str(ortho),
                     "radiometry": json.dumps(dataclasses.asdict(radiometry)),
+                    **product_attrs("simulate"),
                 },
             )
             ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False).compute()
-        commit_store(tmp, out)
+        commit_output(tmp, out, overwrite=overwrite)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
