@@ -6,7 +6,6 @@ Every command calls the same library functions a notebook would; ``--scheduler``
 
 from __future__ import annotations
 
-import errno
 import functools
 import logging
 import sys
@@ -14,19 +13,21 @@ import time
 
 import click
 
-from .errors import EXIT_ENVIRONMENT, EXIT_INPUT, EXIT_INTERRUPTED, GeocoderError
+from .errors import ENVIRONMENT_ERRNOS, EXIT_ENVIRONMENT, EXIT_INPUT, EXIT_INTERRUPTED, GeocoderError
 
 log = logging.getLogger("geocoder")
-
-#: OSError numbers that mean the machine failed, not the input: the job can resume once fixed.
-ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS, errno.ENOMEM}
 
 
 def _setup_logging(verbose: int, quiet: bool) -> None:
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
-    for noisy in ("distributed", "bokeh", "tornado", "asyncio", "rasterio", "numba"):
-        logging.getLogger(noisy).setLevel(logging.ERROR if verbose < 2 else logging.INFO)
+    import distributed  # noqa: F401  (its import configures its loggers; override them after it)
+
+    # Dask's own error logs repeat, with tracebacks, failures the command reports in one line
+    noisy = ("distributed", "bokeh", "tornado", "asyncio", "rasterio", "numba")
+    names = [n for n in logging.root.manager.loggerDict if n.split(".")[0] in noisy]
+    for name in {*noisy, *names}:
+        logging.getLogger(name).setLevel(logging.CRITICAL if verbose < 2 else logging.INFO)
 
 
 def _fail(message: str, code: int) -> None:
@@ -45,18 +46,6 @@ def _friendly(fn):
             _fail(str(exc), EXIT_INPUT)
 
     return wrapper
-
-
-def _cluster_failure(exc: BaseException) -> bool:
-    """Whether ``exc`` is Dask losing its scheduler or workers (the cluster, not the input)."""
-    from distributed.client import FutureCancelledError
-    from distributed.comm.core import CommClosedError
-
-    try:
-        from distributed.scheduler import KilledWorker
-    except ImportError:  # pragma: no cover
-        KilledWorker = ()
-    return isinstance(exc, (CommClosedError, FutureCancelledError, KilledWorker))
 
 
 class _Main(click.Group):
@@ -84,7 +73,9 @@ class _Main(click.Group):
             where = f"{exc.filename}: " if exc.filename else ""
             _fail(f"{where}{exc.strerror or exc}; free the resource and run the same command again to resume", EXIT_ENVIRONMENT)
         except Exception as exc:
-            if not _cluster_failure(exc):
+            from .runtime import is_cluster_failure
+
+            if not is_cluster_failure(exc):
                 raise
             _fail(f"the Dask cluster failed ({type(exc).__name__}: {exc}); run the same command again to resume",
                   EXIT_ENVIRONMENT)
@@ -293,8 +284,8 @@ def cluster_down(directory):
     """Stop the cluster started by 'geocoder cluster up'."""
     from .cluster import down
 
-    info = down(directory)
-    click.echo("no cluster was running" if info is None else f"stopped {info.address} and {len(info.worker_pids)} worker(s)")
+    stopped = down(directory)
+    click.echo("no cluster was running" if stopped is None else stopped.line())
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -56,7 +56,8 @@ class ClusterInfo:
     def lines(self) -> list[str]:
         return [
             f"scheduler {self.address} with {len(self.worker_pids)} worker(s){' (TLS)' if self.tls else ''}",
-            f"dashboard {self.dashboard}",
+            f"dashboard {self.dashboard}"
+            + (" (plain HTTP, not covered by TLS: anyone who reaches this port sees the cluster)" if self.tls else ""),
             f"use it: geocoder register ... --scheduler {self.file}",
             *([] if self.tls else [f"     or: export DASK_SCHEDULER_ADDRESS={self.address}"]),
             f"stop it: geocoder cluster down{'' if self.directory == default_directory() else ' --dir ' + self.directory}",
@@ -198,30 +199,52 @@ def _wait(ready, timeout: float, what: str, directory: str, proc: subprocess.Pop
         time.sleep(0.1)
 
 
-def _terminate(pid: int, grace: float = 10.0) -> None:
-    """SIGTERM the process group of ``pid``, SIGKILL it after ``grace`` seconds."""
+def _terminate(pid: int, grace: float = 10.0) -> bool:
+    """SIGTERM the process group of ``pid``, SIGKILL it after ``grace`` seconds.
+
+    Returns whether the process was still running.
+    """
+    running = _alive(pid)
     for sig in (signal.SIGTERM, signal.SIGKILL):
         try:
             os.killpg(pid, sig)
         except (ProcessLookupError, PermissionError):
-            return
+            return running
         deadline = time.time() + grace
         while time.time() < deadline:
             try:
                 if os.waitpid(pid, os.WNOHANG)[0] == pid:
-                    return
+                    return running
             except ChildProcessError:
                 if not _alive(pid):
-                    return
+                    return running
             time.sleep(0.1)
+    return running
 
 
-def down(directory: str | None = None) -> ClusterInfo | None:
-    """Stop the cluster described in ``directory``; return what was stopped (None: nothing ran)."""
+@dataclass
+class Stopped:
+    """What :func:`down` found running and stopped."""
+
+    info: ClusterInfo
+    scheduler_running: bool
+    workers_running: int
+
+    def line(self) -> str:
+        dead = len(self.info.worker_pids) - self.workers_running
+        parts = [f"stopped {self.info.address}" if self.scheduler_running else f"the scheduler {self.info.address} had already stopped",
+                 f"{self.workers_running} worker process(es) stopped"]
+        if dead:
+            parts.append(f"{dead} had already stopped")
+        return "; ".join(parts)
+
+
+def down(directory: str | None = None) -> Stopped | None:
+    """Stop the cluster described in ``directory``; what was still running (None: no cluster file)."""
     info = read_info(directory)
     if info is None:
         return None
-    for pid in [*info.worker_pids, info.scheduler_pid]:
-        _terminate(pid)
+    workers = sum(_terminate(pid) for pid in info.worker_pids)
+    scheduler = _terminate(info.scheduler_pid)
     os.unlink(info.file)
-    return info
+    return Stopped(info, scheduler, workers)

@@ -8,6 +8,12 @@ EXIT_ENVIRONMENT = 3  # the machine or the cluster failed (disk full, scheduler 
 EXIT_INTERRUPTED = 130  # Ctrl-C; an interrupted job keeps its finished work for a rerun
 
 
+import errno as _errno
+
+#: OSError numbers that mean the machine failed, not the input: the job can resume once fixed.
+ENVIRONMENT_ERRNOS = frozenset({_errno.ENOSPC, _errno.EDQUOT, _errno.EIO, _errno.EROFS, _errno.ENOMEM})
+
+
 class GeocoderError(Exception):
     """Base class of every error geocoder raises on purpose.
 
@@ -47,6 +53,14 @@ class EnvironmentFailure(GeocoderError):
         self.resource = str(resource) if resource is not None else None
         self.problem = problem
         super().__init__(f"{self.resource}: {problem}" if self.resource else problem)
+
+
+def as_environment_failure(exc: BaseException, resource: object) -> EnvironmentFailure | None:
+    """``exc`` as an :class:`EnvironmentFailure` naming ``resource`` if the machine failed (disk full ...)."""
+    if isinstance(exc, OSError) and exc.errno in ENVIRONMENT_ERRNOS:
+        where = exc.filename or resource
+        return EnvironmentFailure(where, f"{exc.strerror or exc}; free the resource and run the same command again to resume")
+    return None
 
 
 class GeocoderWarning(UserWarning):

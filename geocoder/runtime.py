@@ -184,6 +184,23 @@ def dask_client(client: Client | None = None, scheduler: str | None = None, n_wo
         yield c
 
 
+def is_cluster_failure(exc: BaseException) -> bool:
+    """Whether ``exc`` is Dask losing its scheduler or workers (the cluster failed, not the input)."""
+    import asyncio
+
+    from distributed.client import FutureCancelledError
+    from distributed.comm.core import CommClosedError
+
+    try:
+        from distributed.scheduler import KilledWorker
+    except ImportError:  # pragma: no cover
+        KilledWorker = CommClosedError
+    if isinstance(exc, (CommClosedError, FutureCancelledError, KilledWorker, asyncio.CancelledError)):
+        return True
+    # the client's reconnection gave up: a plain OSError from distributed.comm.core.connect
+    return type(exc) is OSError and exc.errno is None and str(exc).startswith("Timed out trying to connect")
+
+
 def current_client() -> Client | None:
     """The distributed client of the running job, if any."""
     try:

@@ -18,7 +18,7 @@ import zarr
 from affine import Affine
 
 from . import storage
-from .errors import InputError
+from .errors import InputError, as_environment_failure
 from .outputs import check_output, commit_output, product_attrs
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 
@@ -200,6 +200,9 @@ def ingest(
             else:
                 delayed.compute()
         except Exception as exc:
+            failure = as_environment_failure(exc, out)
+            if failure is not None:
+                raise failure from exc
             if is_read_error(exc):
                 raise InputError(scene.attrs.get("source", "input"),
                                  f"cannot be read, the file is truncated or damaged ({_first_line(exc)})") from exc

@@ -21,7 +21,7 @@ import numpy as np
 import xarray as xr
 
 from .. import progress, storage
-from ..errors import EnvironmentFailure, GeocoderError, InputError, MatchingError, OutputError
+from ..errors import EnvironmentFailure, GeocoderError, InputError, MatchingError, OutputError, as_environment_failure
 from ..outputs import check_output, commit_output, product_attrs
 from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
@@ -29,7 +29,7 @@ from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
 from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
-from ..runtime import dask_client
+from ..runtime import dask_client, is_cluster_failure
 from ..scene import WindowReader, ingest, open_scene
 from ..status import Status, legend
 from ..tiles import TileGrid
@@ -299,10 +299,10 @@ def register(
     if job.resumed:
         log.info("resuming the job in %s", job.path)
     keep = False  # whether the job directory stays for a rerun to resume
-    connected = False
+    connected = None  # the scheduler's address once connected
     try:
         with progress.reporting(show_progress), dask_client(client, scheduler) as c:
-            connected = True
+            connected = c.scheduler.address
             progress.current().message(f"Dask dashboard: {c.dashboard_link}")
             ds, counts, tp = _run(job, bscene, dscene, opts, summary, timer, c, in_memory=out is None)
             summary.status_counts = {Status(i).name.lower(): int(n) for i, n in enumerate(counts) if n}
@@ -325,8 +325,14 @@ def register(
         # scheduler address must not cost the finished work of an earlier run
         keep = job.resumed and not connected
         raise
-    except BaseException:
-        keep = True  # interrupted or crashed: a rerun resumes
+    except BaseException as exc:
+        keep = True  # interrupted, crashed, disk full: a rerun resumes
+        failure = as_environment_failure(exc, job.path)
+        if failure is None and connected and is_cluster_failure(exc):
+            failure = EnvironmentFailure(connected, "lost the Dask scheduler or its workers mid-job "
+                                         f"({type(exc).__name__}); run the same command again to resume")
+        if failure is not None:
+            raise failure from exc
         raise
     finally:
         if keep and out is not None:
