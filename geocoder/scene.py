@@ -93,9 +93,11 @@ def open_scene(
     is_url = "://" in spath
     if not is_url and not os.path.exists(spath):
         raise InputError(spath, "no such file")
+    # workers of a cluster run in other directories: they read the file by its absolute path
+    where = spath if is_url else os.path.abspath(spath)
     try:
         if _is_zarr(spath):
-            ds = xr.open_zarr(spath, decode_coords="all", consolidated=False, chunks={})
+            ds = xr.open_zarr(where, decode_coords="all", consolidated=False, chunks={})
             if IMAGE_VAR not in ds:
                 raise InputError(spath, f"Zarr store has no '{IMAGE_VAR}' array (was it written by `geocoder ingest`?)")
             da = ds[IMAGE_VAR]
@@ -105,7 +107,7 @@ def open_scene(
         else:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # NotGeoreferencedWarning for raw frames
-                da = rioxarray.open_rasterio(spath, masked=True, chunks=_chunks(chunks), lock=False, cache=False)
+                da = rioxarray.open_rasterio(where, masked=True, chunks=_chunks(chunks), lock=False, cache=False)
             source_dtype = str(da.encoding.get("rasterio_dtype", da.encoding.get("dtype", da.dtype)))
             if isinstance(da, list):
                 raise InputError(spath, "has several subdatasets; open one of them")

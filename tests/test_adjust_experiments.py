@@ -1,6 +1,7 @@
 """The seed's rectification experiments, small: Table 3 and Table 5 trends, blunders, files + CLI."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -91,6 +92,19 @@ def test_adjust_command_from_files(tmp_path, client):
                           "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv", "--out", out],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "nope.json: no such file" in bad.stderr
+    # outputs: an earlier adjustment is replaced only with --overwrite, a user's directory never
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    args = [sys.executable, "-m", "geocoder.cli", "adjust", "--frames", tmp_path / "frames.json",
+            "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv"]
+    for target, flags, message in ((out, [], "pass --overwrite"), (mine, ["--overwrite"], "geocoder did not write")):
+        refused = subprocess.run([*args, "--out", target, *flags], capture_output=True, text=True)
+        assert refused.returncode == 2 and message in refused.stderr and "Traceback" not in refused.stderr
+    assert os.listdir(mine) == ["notes.txt"] and (out / "summary.json").exists()
+    again = subprocess.run([*args, "--out", out, "--overwrite"], capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
     # the same adjustment gathered on one worker of a cluster
     from geocoder.adjust.run import adjust_files
 

@@ -317,20 +317,17 @@ def register(
 
             zarr.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
             commit_output(store, out, overwrite=overwrite)
-    except (EnvironmentFailure, OutputError):
-        keep = True  # disk full, scheduler lost, output taken meanwhile: a rerun resumes
-        raise
-    except GeocoderError:
-        # bad input or no match: a rerun would fail the same way, keep nothing; but a bad
-        # scheduler address must not cost the finished work of an earlier run
-        keep = job.resumed and not connected
-        raise
     except BaseException as exc:
-        keep = True  # interrupted, crashed, disk full: a rerun resumes
         failure = as_environment_failure(exc, job.path)
         if failure is None and connected and is_cluster_failure(exc):
             failure = EnvironmentFailure(connected, "lost the Dask scheduler or its workers mid-job "
                                          f"({type(exc).__name__}); run the same command again to resume")
+        if connected is None:
+            keep = job.resumed  # no scheduler, nothing done: keep only an earlier run's work
+        else:
+            # bad input or no match: a rerun would fail the same way, keep nothing; interrupted,
+            # crashed, disk full, scheduler lost, output taken meanwhile: a rerun resumes
+            keep = isinstance(failure or exc, (EnvironmentFailure, OutputError)) or not isinstance(exc, GeocoderError)
         if failure is not None:
             raise failure from exc
         raise

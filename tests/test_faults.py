@@ -1,0 +1,312 @@
+"""Bad inputs and faults, through the real command line: exit code, one line, what is left on disk.
+
+Every case runs ``geocoder`` as a subprocess (the test cluster's scheduler where a job gets as
+far as computing) and asserts the exit code (2 bad input or usage, 3 environment, 130
+interrupted), the single ``geocoder: error: ...`` line naming the file or resource, that no
+traceback is printed, and that nothing the user had was deleted, changed or hidden. The
+data-loss cases come first.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+from geocoder.scene import write_geotiff
+from geocoder.simulate.texture import synthetic_ortho
+from geocoder.simulate.warp import make_pair
+
+pytestmark = pytest.mark.cluster
+
+GEOCODER = [sys.executable, "-m", "geocoder.cli", "-q"]
+
+
+def run(*args, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([*GEOCODER, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=timeout)
+
+
+def snapshot(directory: Path) -> dict[str, str]:
+    """Every file and directory under ``directory`` (hidden ones included) with its content hash."""
+    out = {}
+    for root, dirs, files in os.walk(directory):
+        for d in dirs:
+            out[os.path.relpath(os.path.join(root, d), directory) + "/"] = "dir"
+        for f in files:
+            p = os.path.join(root, f)
+            out[os.path.relpath(p, directory)] = hashlib.sha256(Path(p).read_bytes()).hexdigest()
+    return out
+
+
+def assert_error(r: subprocess.CompletedProcess, code: int, *needles: str) -> str:
+    """One ``geocoder: error:`` line, last on stderr, holding every needle; no traceback."""
+    assert r.returncode == code, (r.returncode, r.stderr)
+    assert "Traceback" not in r.stderr, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("geocoder: error: ")]
+    assert len(lines) == 1, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == lines[0]
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory) -> Path:
+    """A working directory with the inputs of every case (and a user's own files)."""
+    d = tmp_path_factory.mktemp("faults")
+    src = synthetic_ortho((352, 352), seed=5)
+    pair = make_pair(src, shape=(256, 256), seed=5, margin=48)
+    write_geotiff(d / "base.tif", pair.base)
+    write_geotiff(d / "dist.tif", pair.distorted)
+    write_geotiff(d / "tiny1.tif", np.ones((1, 1), np.float32))
+    write_geotiff(d / "tiny3.tif", np.arange(9, dtype=np.float32).reshape(3, 3))
+    write_geotiff(d / "constant.tif", np.full((256, 256), 7.0, np.float32))
+    write_geotiff(d / "allnan.tif", np.full((256, 256), np.nan, np.float32))
+    with rasterio.open(d / "nodata.tif", "w", driver="GTiff", width=256, height=256, count=1, dtype="uint8", nodata=0) as f:
+        f.write(np.zeros((256, 256), np.uint8), 1)
+    with rasterio.open(d / "complex.tif", "w", driver="GTiff", width=64, height=64, count=1, dtype="complex64") as f:
+        f.write(np.ones((64, 64), np.complex64), 1)
+    with rasterio.open(d / "whole.tif", "w", driver="GTiff", width=512, height=512, count=1, dtype="float32") as f:
+        f.write(np.squeeze(synthetic_ortho((512, 512), seed=6)).astype(np.float32), 1)
+    data = (d / "whole.tif").read_bytes()
+    (d / "truncated.tif").write_bytes(data[: len(data) // 2])
+    (d / "whole.tif").unlink()
+    (d / "notes.tif").write_text("not a raster\n")
+    (d / "mine").mkdir()
+    (d / "mine" / "thesis.txt").write_text("years of work\n")
+    (d / "report.txt").write_text("a user's file\n")
+    return d
+
+
+# --- data loss: nothing the user has is ever deleted, replaced or hidden ----------------------
+
+DATA_LOSS = {
+    "out is a user's directory": (["register", "base.tif", "dist.tif", "--out", "mine"], 2, ["mine", "geocoder did not write"]),
+    "out is a user's directory, --overwrite": (["register", "base.tif", "dist.tif", "--out", "mine", "--overwrite"], 2,
+                                               ["geocoder did not write"]),
+    "out is the working directory": (["register", "base.tif", "dist.tif", "--out", "."], 2, ["working directory"]),
+    "out is empty": (["register", "base.tif", "dist.tif", "--out", ""], 2, ["--out: the output path is empty"]),
+    "out contains the working directory": (["register", "base.tif", "dist.tif", "--out", ".."], 2, ["working directory"]),
+    "out is the base image": (["register", "base.tif", "dist.tif", "--out", "base.tif"], 2, ["base.tif", "an input"]),
+    "out is the distorted image, --overwrite": (["register", "base.tif", "dist.tif", "--out", "dist.tif", "--overwrite"], 2,
+                                                ["dist.tif", "an input"]),
+    "out is a user's file": (["register", "base.tif", "dist.tif", "--out", "report.txt"], 2, ["report.txt", "a file geocoder did not write"]),
+    "out in a missing directory": (["register", "base.tif", "dist.tif", "--out", "nowhere/o.zarr"], 2, ["parent directory does not exist"]),
+    "ingest into a user's directory": (["ingest", "base.tif", "mine"], 2, ["mine", "geocoder did not write"]),
+    "ingest into the working directory": (["ingest", "base.tif", "."], 2, ["working directory"]),
+    "ingest onto its input": (["ingest", "base.tif", "base.tif", "--overwrite"], 2, ["an input"]),
+    "simulate into a user's directory": (["simulate", "airborne", "--ortho", "synthetic", "--out", "mine"], 2, ["geocoder did not write"]),
+    "demo into a user's directory": (["demo", "--out", "mine"], 2, ["mine", "geocoder did not write"]),
+    "demo into the working directory": (["demo", "--out", "."], 2, ["working directory"]),
+}
+
+
+@pytest.mark.parametrize("case", list(DATA_LOSS))
+def test_data_loss_refused(work, case):
+    args, code, needles = DATA_LOSS[case]
+    before = snapshot(work)
+    r = run(*args, cwd=work)
+    assert_error(r, code, *needles)
+    assert snapshot(work) == before  # nothing deleted, changed, hidden or left behind
+
+
+def test_out_dot_in_an_empty_working_directory_keeps_the_directory(work, tmp_path, client):
+    """``--out .`` from a fresh directory: refused before anything is written (the case that emptied it)."""
+    (tmp_path / "keep.txt").write_text("x")
+    r = run("register", work / "base.tif", work / "dist.tif", "--out", ".", "--scheduler", client.scheduler.address, cwd=tmp_path)
+    assert_error(r, 2, "working directory")
+    assert sorted(os.listdir(tmp_path)) == ["keep.txt"]
+
+
+def test_overwrite_replaces_only_geocoder_outputs(work, tmp_path, client):
+    out = tmp_path / "o.zarr"
+    args = ["register", work / "base.tif", work / "dist.tif", "--out", out, "--no-dense", "--tile", 128,
+            "--scheduler", client.scheduler.address]
+    assert run(*args, cwd=tmp_path).returncode == 0
+    first = json.loads((out / "zarr.json").read_text())["attributes"]
+    assert first["geocoder_product"] == "register"
+    assert_error(run(*args, cwd=tmp_path), 2, str(out), "pass --overwrite")
+    r = run(*args, "--overwrite", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert sorted(os.listdir(tmp_path)) == ["o.zarr"]  # no old store, job directory or lock left
+    # an input inside an output geocoder wrote: replacing that output would delete the input
+    (out / "inner.tif").write_bytes((work / "base.tif").read_bytes())
+    assert_error(run("register", out / "inner.tif", work / "dist.tif", "--out", out, "--overwrite", cwd=tmp_path),
+                 2, "contains the input")
+    # an output inside an input store
+    assert_error(run("register", out, work / "dist.tif", "--out", out / "nested.zarr", cwd=tmp_path), 2, "lies inside the input")
+
+
+def test_demo_reruns_into_its_own_directory_only(tmp_path, client):
+    sched = ["--scheduler", client.scheduler.address]
+    r = run("demo", "--size", 256, "--tile", 128, "--out", "d", *sched, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    r = run("demo", "--size", 256, "--tile", 128, "--out", "d", *sched, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr  # its own directory: run again in place
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "data.csv").write_text("1,2\n")
+    assert_error(run("demo", "--out", "other", *sched, cwd=tmp_path), 2, "geocoder did not write")
+    assert (tmp_path / "other" / "data.csv").read_text() == "1,2\n"
+
+
+# --- bad input: one line naming the file, no job directory left ------------------------------
+
+BAD_INPUT = {
+    "missing base": (["register", "nope.tif", "dist.tif"], ["nope.tif: no such file"]),
+    "1 x 1 image": (["register", "tiny1.tif", "dist.tif"], ["tiny1.tif", "is 1 x 1 px"]),
+    "3 x 3 image": (["register", "base.tif", "tiny3.tif"], ["tiny3.tif", "is 3 x 3 px"]),
+    "constant image": (["register", "constant.tif", "dist.tif"], ["constant.tif", "is constant"]),
+    "all-NaN image": (["register", "base.tif", "allnan.tif"], ["allnan.tif", "no valid pixels"]),
+    "all-nodata image": (["register", "nodata.tif", "dist.tif"], ["nodata.tif", "no valid pixels"]),
+    "truncated GeoTIFF": (["register", "truncated.tif", "dist.tif"], ["truncated.tif", "truncated or damaged"]),
+    "complex pixels": (["register", "complex.tif", "dist.tif"], ["complex.tif", "complex pixels"]),
+    "not a raster": (["register", "notes.tif", "dist.tif"], ["notes.tif", "cannot be read as a raster"]),
+    "band that does not exist": (["register", "base.tif", "dist.tif", "--band", 5], ["band 5 does not exist"]),
+    "band 0": (["register", "base.tif", "dist.tif", "--band", 0], ["--band", "0 is not in the range"]),
+    "tile not a multiple of 64": (["register", "base.tif", "dist.tif", "--tile", 100], ["multiple of 64"]),
+    "tile 0": (["register", "base.tif", "dist.tif", "--tile", 0], ["--tile", "0 is not in the range"]),
+    "order 7": (["register", "base.tif", "dist.tif", "--order", 7], ["--order"]),
+    "unknown resampling": (["register", "base.tif", "dist.tif", "--resampling", "magic"], ["--resampling", "magic"]),
+    "unknown option": (["register", "base.tif", "dist.tif", "--fast"], ["No such option", "--fast"]),
+    "unparsable scheduler address": (["register", "base.tif", "dist.tif", "--scheduler", "nonsense::addr"],
+                                     ["nonsense::addr", "not a usable Dask scheduler address"]),
+    "TLS scheduler without certificates": (["register", "base.tif", "dist.tif", "--scheduler", "tls://127.0.0.1:1"],
+                                           ["tls://127.0.0.1:1", "TLS needs certificates"]),
+    "ingest --tile 0": (["ingest", "base.tif", "x.zarr", "--tile", 0], ["--tile", "0 is not in the range"]),
+    "ingest --tile -1": (["ingest", "base.tif", "x.zarr", "--tile", -1], ["--tile", "-1 is not in the range"]),
+    "ingest a truncated GeoTIFF": (["ingest", "truncated.tif", "x.zarr"], ["truncated.tif", "truncated or damaged"]),
+    "ingest a missing file": (["ingest", "nope.tif", "x.zarr"], ["nope.tif: no such file"]),
+    "simulate --noise -1": (["simulate", "airborne", "--ortho", "synthetic", "--out", "s.zarr", "--noise", -1], ["--noise"]),
+    "simulate --pixel 0": (["simulate", "satellite", "--ortho", "synthetic", "--out", "s.zarr", "--pixel", 0], ["--pixel"]),
+    "simulate a missing ortho": (["simulate", "airborne", "--ortho", "nope.tif", "--out", "s.zarr"], ["nope.tif: no such file"]),
+    "demo --size 10": (["demo", "--size", 10, "--out", "d"], ["--size"]),
+    "cluster up --port 70000": (["cluster", "up", "--port", 70000, "--dir", "c"], ["--port"]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUT))
+def test_bad_input_is_one_line(work, client, case):
+    args, needles = BAD_INPUT[case]
+    if args[0] == "register":
+        args = [*args, "--out", "o.zarr", "--tile", 128] if "--tile" not in args else [*args, "--out", "o.zarr"]
+        if "--scheduler" not in args:
+            args += ["--scheduler", client.scheduler.address]
+    elif args[0] == "ingest":
+        args = [*args, "--scheduler", client.scheduler.address]
+    before = snapshot(work)
+    assert_error(run(*args, cwd=work), 2, *needles)
+    assert snapshot(work) == before  # no output, no job directory, no lock
+
+
+# --- environment failures: exit 3, the job kept for a rerun ----------------------------------
+
+def test_unreachable_scheduler_is_reported_quickly(work):
+    before = snapshot(work)
+    t0 = time.monotonic()
+    r = run("register", "base.tif", "dist.tif", "--out", "o.zarr", "--scheduler", "tcp://127.0.0.1:1", cwd=work)
+    assert_error(r, 3, "tcp://127.0.0.1:1", "does not answer")
+    assert time.monotonic() - t0 < 45  # was 60 s of connect timeout alone
+    assert snapshot(work) == before
+
+
+def test_a_second_job_to_the_same_output_is_refused(work, tmp_path, client):
+    """A live holder of the lock (this test process stands in for the first job) refuses the second."""
+    import psutil
+
+    job = tmp_path / ".o.zarr.geocoder-job"
+    job.mkdir()
+    lock = {"host": os.uname().nodename, "pid": os.getpid(), "process_start": psutil.Process().create_time(), "since": time.time()}
+    (job / "lock.json").write_text(json.dumps(lock))
+    before = snapshot(tmp_path)
+    r = run("register", work / "base.tif", work / "dist.tif", "--out", "o.zarr", "--tile", 128,
+            "--scheduler", client.scheduler.address, cwd=tmp_path)
+    assert_error(r, 3, "o.zarr", "another geocoder job is writing it", f"pid {os.getpid()}")
+    assert snapshot(tmp_path) == before  # the other job's directory and lock untouched
+    # the holder died (a pid that no longer runs): the lock is taken over and the job runs
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    lock.update(pid=dead.pid, process_start=0.0)
+    (job / "lock.json").write_text(json.dumps(lock))
+    r = run("register", work / "base.tif", work / "dist.tif", "--out", "o.zarr", "--tile", 128, "--no-dense",
+            "--scheduler", client.scheduler.address, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert sorted(os.listdir(tmp_path)) == ["o.zarr"]
+
+
+def test_two_jobs_started_together_one_runs_one_is_refused(work, tmp_path, client):
+    args = [*GEOCODER, "register", work / "base.tif", work / "dist.tif", "--out", "o.zarr", "--tile", 128,
+            "--scheduler", client.scheduler.address]
+    procs = [subprocess.Popen(list(map(str, args)), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    results = [p.communicate(timeout=300) + (p.returncode,) for p in procs]
+    codes = sorted(rc for _, _, rc in results)
+    assert codes in ([0, 3], [0, 0]), results  # [0, 0]: the second started after the first had finished
+    for out, err, rc in results:
+        assert "Traceback" not in err
+        if rc == 3:
+            assert "another geocoder job is writing it" in err.strip().splitlines()[-1]
+    assert sorted(os.listdir(tmp_path)) == ["o.zarr"]
+
+
+def test_disk_full_keeps_the_job_for_a_rerun(work, tmp_path, client):
+    small = tmp_path / "small"
+    small.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(small)], capture_output=True).returncode:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        r = run("register", work / "base.tif", work / "dist.tif", "--out", small / "o.zarr", "--tile", 128,
+                "--scheduler", client.scheduler.address, cwd=tmp_path)
+        line = assert_error(r, 3, "No space left on device", "run the same command again")
+        assert str(small) in line
+        assert os.listdir(small) == [".o.zarr.geocoder-job"]  # kept, unlocked, for the rerun
+        assert not (small / ".o.zarr.geocoder-job" / "lock.json").exists()
+    finally:
+        subprocess.run(["umount", str(small)], check=True)
+
+
+def test_ctrl_c_is_one_line_and_the_rerun_resumes(tmp_path, client):
+    """SIGINT to the whole process group, as a terminal's Ctrl-C, mid dense matching."""
+    src = synthetic_ortho((864, 864), seed=8)
+    pair = make_pair(src, shape=(768, 768), seed=8, margin=48)
+    write_geotiff(tmp_path / "b.tif", pair.base)
+    write_geotiff(tmp_path / "d.tif", pair.distorted)
+    args = [*GEOCODER[:-1], "register", "b.tif", "d.tif", "--out", "o.zarr", "--tile", 128]  # a local cluster of its own
+    p = subprocess.Popen(list(map(str, args)), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    manifest = tmp_path / ".o.zarr.geocoder-job" / "manifest.json"
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and p.poll() is None:
+        if manifest.exists() and "correspondence" in manifest.read_text():
+            break
+        time.sleep(0.2)
+    assert p.poll() is None, p.communicate()
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert err.strip().splitlines()[-1].startswith("geocoder: error: interrupted")
+    assert not (tmp_path / "o.zarr").exists()
+    assert (tmp_path / ".o.zarr.geocoder-job").is_dir()
+    r = run("register", "b.tif", "d.tif", "--out", "o.zarr", "--tile", 128, "--scheduler", client.scheduler.address, cwd=tmp_path)
+    # another scheduler, same job: the finished stages are reused
+    assert r.returncode == 0, r.stderr
+    assert "resumed:" in r.stdout
+    assert sorted(os.listdir(tmp_path)) == ["b.tif", "d.tif", "o.zarr"]
+
+
+def test_identical_images_have_no_outside_pixels(work, tmp_path, client):
+    """Round-off of an identity fit (1e-5 px) must not leave the first row and column 'outside'."""
+    from geocoder import Status, register
+
+    ds = register(work / "base.tif", work / "base.tif", tile=128, client=client, dense=False)
+    assert int((ds.status.values == Status.OUTSIDE).sum()) == 0
+    assert np.isfinite(ds.registered.values).all()
