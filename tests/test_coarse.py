@@ -68,3 +68,19 @@ def test_unrelated_images_raise():
     flat = np.zeros((128, 128))
     with pytest.raises(MatchingError, match="no overlap"):
         align_overviews(a, flat, 1)
+
+
+@pytest.mark.parametrize("error_px", [(300.0, 0.0), (-250.0, 180.0)])
+def test_georeference_hundreds_of_pixels_off(error_px):
+    """A georeference wrong by more than half the overview: phase correlation's circular alias is
+    resolved by the overlap's correlation (was: 'does not overlap' at 41 % real overlap)."""
+    from geocoder.simulate.texture import synthetic_ortho
+
+    src = np.squeeze(synthetic_ortho((768, 1024), seed=9)).astype(np.float64)
+    base, dist = src[:512, :512], src[100:612, 100:612]
+    truth = np.array([[1.0, 0.0, -100.0], [0.0, 1.0, -100.0]])
+    prior = truth.copy()
+    prior[:, 2] -= error_px
+    found = align_overviews(base, dist, 1, prior=prior)
+    assert found.method.startswith("georeference+shift")
+    np.testing.assert_allclose(found.matrix, truth, atol=0.05)

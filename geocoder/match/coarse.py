@@ -58,6 +58,40 @@ def warp_into(dist: np.ndarray, matrix: np.ndarray, shape: tuple[int, int]) -> n
     return sample(dist, m[0, 0] * xs + m[0, 1] * ys + m[0, 2], m[1, 0] * xs + m[1, 1] * ys + m[1, 2], method="bilinear")
 
 
+def overlap_correlation(a: np.ndarray, b: np.ndarray, dx: float, dy: float, *, min_fraction: float = 0.02) -> float:
+    """Correlation coefficient of ``a(x, y)`` and ``b(x + dx, y + dy)`` (shift rounded) over their overlap.
+
+    NaN if fewer than ``min_fraction`` of the pixels (and 256) are valid in both.
+    """
+    h, w = a.shape
+    ix, iy = int(round(dx)), int(round(dy))
+    ya, yb = slice(max(0, -iy), min(h, h - iy)), slice(max(0, iy), min(h, h + iy))
+    xa, xb = slice(max(0, -ix), min(w, w - ix)), slice(max(0, ix), min(w, w + ix))
+    pa, pb = a[ya, xa], b[yb, xb]
+    ok = np.isfinite(pa) & np.isfinite(pb)
+    if ok.sum() < max(256, min_fraction * a.size):
+        return float("nan")
+    u, v = pa[ok] - pa[ok].mean(), pb[ok] - pb[ok].mean()
+    denom = np.sqrt((u * u).sum() * (v * v).sum())
+    return float((u * v).sum() / denom) if denom > 0 else float("nan")
+
+
+def unwrap_shift(a: np.ndarray, b: np.ndarray, dx: float, dy: float) -> tuple[float, float]:
+    """The shift among the circular aliases of ``(dx, dy)`` (one image size either way) that correlates best.
+
+    Phase correlation is circular: a shift of 300 px on a 512 px overview reads as -212 px.
+    """
+    h, w = a.shape
+    cand_x = [c for c in (dx, dx - w, dx + w) if abs(c) < w]
+    cand_y = [c for c in (dy, dy - h, dy + h) if abs(c) < h]
+    scored = [(overlap_correlation(a, b, cx, cy), cx, cy) for cx in cand_x for cy in cand_y]
+    scored = [s for s in scored if np.isfinite(s[0])]
+    if not scored:
+        return dx, dy
+    _, bx, by = max(scored)
+    return bx, by
+
+
 def refine_translation(base: np.ndarray, dist: np.ndarray, matrix: np.ndarray) -> tuple[np.ndarray, float]:
     """Correct the translation of ``matrix`` (base -> dist) by phase correlation."""
     warped = warp_into(dist, matrix, base.shape)
@@ -67,7 +101,8 @@ def refine_translation(base: np.ndarray, dist: np.ndarray, matrix: np.ndarray) -
     shift = phase_correlation(base, warped)
     if not np.isfinite(shift.dx):
         return _h(matrix), 0.0
-    t = np.array([[1.0, 0.0, shift.dx], [0.0, 1.0, shift.dy], [0.0, 0.0, 1.0]])
+    dx, dy = unwrap_shift(base, warped, shift.dx, shift.dy)
+    t = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
     return _h(matrix) @ t, float(shift.peak)
 
 
