@@ -1,4 +1,4 @@
-"""Command line: ``geocoder register | ingest | simulate | adjust | demo | cluster up|down``.
+"""Command line: ``geocoder register | ingest | mosaic | simulate | adjust | demo | cluster up|down``.
 
 Every command calls the same library functions a notebook would; ``--scheduler`` (default
 ``DASK_SCHEDULER_ADDRESS``) chooses a running Dask cluster, otherwise a local one is started.
@@ -173,6 +173,44 @@ def ingest(src, out, tile, nodata, overwrite, scheduler):
     with dask_client(scheduler=scheduler) as c:
         scene = run(src, out, tile=tile, nodata=nodata, client=c, overwrite=overwrite)
     click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {tile}")
+
+
+@main.command()
+@click.argument("scenes", nargs=-1, required=True)
+@click.option("--reference", required=True, help="Orthoimage: the mosaic's CRS and pixel, and the source of control points.")
+@click.option("--out", required=True, help="Output Zarr store (committed atomically).")
+@click.option("--order", default=2, show_default=True, type=click.IntRange(1, 3), help="Polynomial order of every scene's model.")
+@click.option("--control-scenes", default=None,
+              help="Comma-separated 0-based scenes whose reference matches are control points (default all; the rest are placed by tie points).")
+@click.option("--feather", default=8.0, show_default=True, type=click.FloatRange(min=0), help="Blend width across seams, in output pixels.")
+@click.option("--resampling", default="bilinear", show_default=True, type=click.Choice(["nearest", "bilinear", "cubic", "lanczos"]))
+@tile_option
+@overwrite_option
+@scheduler_option
+@_friendly
+def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, tile, overwrite, scheduler):
+    """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
+    from .mosaic import MosaicSummary
+    from .mosaic import mosaic as run
+
+    control = None
+    if control_scenes:
+        try:
+            control = [int(v) for v in control_scenes.split(",")]
+        except ValueError:
+            raise click.BadParameter(f"{control_scenes!r} is not a comma-separated list of scene numbers",
+                                     param_hint="--control-scenes") from None
+        bad = [k for k in control if not 0 <= k < len(scenes)]
+        if bad:
+            raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
+    t0 = time.perf_counter()
+    ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
+             feather=feather, resampling=resampling, scheduler=scheduler, overwrite=overwrite)
+    import json
+
+    for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():
+        click.echo(line)
+    click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
 
 
 @main.command()

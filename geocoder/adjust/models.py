@@ -311,6 +311,31 @@ class Polynomial2D:
         return coef.T.ravel()
 
 
+class MapPolynomial(Polynomial2D):
+    """2-D polynomial of map coordinates in a projected CRS: the mosaic's per-scene model.
+
+    Ground points are ``(E, N, h)`` in the mosaic's CRS (metres), not ECEF; the height is
+    ignored as in :class:`Polynomial2D`, ``u = (E - E0) / scale``, ``v = (N - N0) / scale``.
+
+    Parameters
+    ----------
+    order : int
+        1 (affine), 2 or 3.
+    origin : (float, float)
+        ``(E0, N0)``, e.g. the scene's centre.
+    scale : float
+        Normalisation of the plane coordinates (m), e.g. half the scene's extent.
+    """
+
+    def __init__(self, order: int, origin: tuple[float, float], scale: float) -> None:
+        super().__init__(order, 0.0, 0.0, scale)
+        self.origin = np.array([float(origin[0]), float(origin[1]), 0.0])
+        self._enu = np.eye(3)
+
+    def __repr__(self) -> str:
+        return f"MapPolynomial(order={self.order}, origin=({self.origin[0]}, {self.origin[1]}), scale={self.scale})"
+
+
 # --------------------------------------------------------------------------- #
 # 2. Rigorous line scanner
 # --------------------------------------------------------------------------- #

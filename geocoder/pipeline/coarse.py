@@ -47,6 +47,7 @@ def coarse_alignment(
     dist_band: int | None = None,
     max_size: int = 512,
     use_georeference: bool = True,
+    prior: np.ndarray | None = None,
 ) -> CoarseAlignment:
     """Coarse affine base pixel -> distorted pixel, found automatically.
 
@@ -60,10 +61,14 @@ def coarse_alignment(
         Largest side of the overviews the alignment runs on.
     use_georeference : bool
         Use the georeference as the prior when both scenes have one.
+    prior : ndarray (2x3), optional
+        A known approximate affine base pixel -> distorted pixel (e.g. both scenes already
+        placed on a reference); it takes the georeference's place.
     """
     dist_band = band if dist_band is None else dist_band
     largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
     factor = max(1, math.ceil(largest / max_size))
     ob, od = dask.compute(overview(base.isel(band=band), factor), overview(dist.isel(band=dist_band), factor))
-    prior = georeference_prior(base, dist) if use_georeference else None
+    if prior is None and use_georeference:
+        prior = georeference_prior(base, dist)
     return align_overviews(np.asarray(ob, dtype=np.float64), np.asarray(od, dtype=np.float64), factor, prior=prior)

@@ -157,15 +157,21 @@ def find_tiepoints(
     summary: RegisterSummary,
     timer,
     job: Job | None = None,
+    prior: np.ndarray | None = None,
 ) -> tuple[TiePoints, PolyMap, CoarseAlignment]:
-    """Coarse alignment, interest points and correspondence passes; gathered tie points."""
+    """Coarse alignment, interest points and correspondence passes; gathered tie points.
+
+    ``prior`` (2x3 affine base pixel -> distorted pixel) replaces the georeference as the
+    start of the coarse alignment.
+    """
     def cached(stage, make):
         return make() if job is None else job.cached(stage, make)
 
     band = opts.band - 1
     dband = (opts.dist_band or opts.band) - 1
     with timer("coarse alignment"):
-        coarse = cached("coarse", lambda: coarse_alignment(base, dist, band=band, dist_band=dband, use_georeference=opts.use_georeference))
+        coarse = cached("coarse", lambda: coarse_alignment(base, dist, band=band, dist_band=dband,
+                                                        use_georeference=opts.use_georeference, prior=prior))
     summary.coarse_method = f"{coarse.method} (pyramid 1/{coarse.factor}, peak {coarse.peak:.2f})"
     base_shape = (base.sizes["y"], base.sizes["x"])
     dist_shape = (dist.sizes["y"], dist.sizes["x"])

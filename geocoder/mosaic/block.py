@@ -1,0 +1,134 @@
+"""The mosaic's block adjustment: control and tie matches -> one :class:`~geocoder.adjust.solver.Problem`.
+
+Each scene is a :class:`~geocoder.adjust.models.MapPolynomial` (map coordinates of the
+output CRS -> scene pixel). Control points are reference matches (known map position, the
+scene pixel observed); tie points are matches between two overlapping scenes (unknown map
+position, observed in both). The problem goes to the existing Schur-reduced solver (seed 000
+eq 5), gathered on one node; heights are held at 0 (the model ignores them).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..adjust.models import MapPolynomial
+from ..adjust.solver import AdjustOptions, AdjustResult, Frame, Problem, adjust
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Matched points: ``a`` in scene ``i`` (or the map, ``i = -1``), ``b`` in scene ``j``.
+
+    ``sigma`` is the matching precision in pixels of scene ``j`` (and ``i``).
+    """
+
+    i: int
+    j: int
+    a: np.ndarray  # (n, 2)
+    b: np.ndarray  # (n, 2)
+    sigma: np.ndarray  # (n,)
+
+    def __len__(self) -> int:
+        return len(self.sigma)
+
+
+def connected_scenes(n: int, control: list[Matches], ties: list[Matches], *, min_points: int) -> np.ndarray:
+    """Scenes tied, directly or through neighbours, to a scene with enough control points."""
+    parent = list(range(n))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for t in ties:
+        if len(t) >= min_points:
+            parent[root(t.i)] = root(t.j)
+    anchored = {root(c.j) for c in control if len(c) >= min_points}
+    return np.array([root(k) in anchored for k in range(n)], dtype=bool)
+
+
+def scene_model(order: int, shape: tuple[int, int], to_map: Callable, *, samples: int = 9) -> tuple[MapPolynomial, np.ndarray]:
+    """A scene's model, centred on its footprint, and start values fitted to ``to_map`` (pixel -> map)."""
+    h, w = shape
+    ys, xs = np.meshgrid(np.linspace(0, h - 1, samples), np.linspace(0, w - 1, samples), indexing="ij")
+    ex, ny = to_map(xs.ravel(), ys.ravel())
+    centre = (float(np.mean(ex)), float(np.mean(ny)))
+    scale = float(max(np.ptp(ex), np.ptp(ny), 1e-6) / 2)
+    model = MapPolynomial(order, centre, scale)
+    ground = np.column_stack([ex, ny, np.zeros(ex.size)])
+    return model, model.fit(ground, np.column_stack([xs.ravel(), ys.ravel()]))
+
+
+def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control: list[Matches], ties: list[Matches], *,
+                  order: int = 2, control_sigma: float = 1e-3, min_sigma: float = 0.02) -> Problem:
+    """The block: one frame per scene, one ground point per control or tie match.
+
+    Parameters
+    ----------
+    shapes : list of (rows, cols)
+    approx : list of callables
+        Approximate scene pixel -> map mapping of every scene (start values only).
+    control : list of Matches
+        ``i = -1``: ``a`` map coordinates, ``b`` pixels of scene ``j``.
+    ties : list of Matches
+        ``a`` pixels of scene ``i``, ``b`` pixels of scene ``j``.
+    order : int
+        Polynomial order of every scene's model.
+    control_sigma : float
+        Standard deviation of the control points' map coordinates (map units; the
+        reference's pixels are the truth here, their matching error is in the scenes).
+    min_sigma : float
+        Floor of the matching sigma (pixels) in the observation weights.
+    """
+    frames = []
+    for shape, f in zip(shapes, approx):
+        model, params = scene_model(order, shape, f)
+        frames.append(Frame(model=model, params=params))
+    ground, gweight, ofr, opt, oxy, osig = [], [], [], [], [], []
+    wxy = 1.0 / control_sigma**2
+    # the model ignores heights; they are held at 0 with a weight of the order of the point's
+    # other weights, so that its 3 x 3 normal block stays well conditioned
+    wz_tie = 1.0
+    n = 0
+    for c in control:
+        m = len(c)
+        ground.append(np.column_stack([c.a, np.zeros(m)]))
+        gweight.append(np.broadcast_to(np.diag([wxy, wxy, wxy]), (m, 3, 3)))
+        ofr.append(np.full(m, c.j))
+        opt.append(n + np.arange(m))
+        oxy.append(c.b)
+        osig.append(c.sigma)
+        n += m
+    for t in ties:
+        m = len(t)
+        ex, ny = approx[t.i](t.a[:, 0], t.a[:, 1])
+        ground.append(np.column_stack([ex, ny, np.zeros(m)]))
+        gweight.append(np.broadcast_to(np.diag([0.0, 0.0, wz_tie]), (m, 3, 3)))
+        for scene, xy in ((t.i, t.a), (t.j, t.b)):
+            ofr.append(np.full(m, scene))
+            opt.append(n + np.arange(m))
+            oxy.append(xy)
+            osig.append(t.sigma)
+        n += m
+    g = np.concatenate(ground) if ground else np.zeros((0, 3))
+    sig = np.maximum(np.concatenate(osig), min_sigma) if osig else np.zeros(0)
+    return Problem(
+        frames=frames,
+        ground=g.copy(),
+        ground_prior=g.copy(),
+        ground_weight=np.ascontiguousarray(np.concatenate(gweight)) if gweight else np.zeros((0, 3, 3)),
+        obs_frame=np.concatenate(ofr).astype(np.int64) if ofr else np.zeros(0, np.int64),
+        obs_point=np.concatenate(opt).astype(np.int64) if opt else np.zeros(0, np.int64),
+        obs_xy=np.concatenate(oxy).astype(np.float64) if oxy else np.zeros((0, 2)),
+        obs_weight=np.eye(2)[None] / (sig**2)[:, None, None],
+    )
+
+
+def solve(problem: Problem, *, robust: bool = True) -> AdjustResult:
+    """Adjust the block (robust re-weighting, eq 20b then 22b), covariances when small enough."""
+    return adjust(problem, AdjustOptions(max_iter=20, tol=1e-8, robust=robust, damping=1e-6))

@@ -1,0 +1,359 @@
+"""``mosaic(scenes, reference=...)``: many overlapping scenes -> one block adjustment -> one mosaic.
+
+1. Every scene and the reference are ingested to Zarr (tile-parallel), inside the job directory.
+2. Every scene is matched against the reference (the registration's coarse alignment,
+   Foerstner points and robust correspondence, tile-parallel): its footprint, and control
+   points for the scenes allowed to have them.
+3. Every pair of scenes whose footprints overlap is matched the same way: tie points.
+4. The block (one :class:`~geocoder.adjust.models.MapPolynomial` per scene) is adjusted on
+   one node with robust re-weighting; scenes tied to no control are reported and left out.
+5. The output grid (the reference's CRS and pixel, the union of the footprints) is written one
+   task per tile: each task maps its pixels into every scene through the adjusted models,
+   samples the ORIGINAL scenes once, and blends them with seams nearest each scene's centre,
+   feathered; ``source`` says which scene each pixel comes from.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+
+import dask
+import dask.array as da
+import numpy as np
+import xarray as xr
+from affine import Affine
+
+from .. import progress
+from ..errors import GeocoderError, InputError
+from ..geometry import pixel_to_world
+from ..kernels.polynomial import fit_polymap
+from ..outputs import check_output, commit_output, product_attrs
+from ..pipeline.job import Job, fingerprint
+from ..pipeline.register import RegisterOptions, RegisterSummary, _ingest, _Timer, find_tiepoints, job_directory
+from ..runtime import dask_client
+from ..scene import WindowReader, open_scene, scene_transform
+from ..tiles import TileGrid
+from .block import Matches, build_problem, connected_scenes, solve
+from .compose import NO_SOURCE, blend, centre_score
+
+log = logging.getLogger("geocoder")
+
+
+@dataclass
+class MosaicSummary:
+    """What the CLI prints and the store keeps (``attrs["summary"]``)."""
+
+    scenes: list[str]
+    control_points: list[int] = field(default_factory=list)
+    pairs: list[dict] = field(default_factory=list)
+    left_out: dict = field(default_factory=dict)
+    sigma0: float = float("nan")
+    iterations: int = 0
+    rms_px: list[float] = field(default_factory=list)
+    shape: tuple[int, int] = (0, 0)
+    seconds: dict = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        kept = len(self.scenes) - len(self.left_out)
+        return [
+            f"scenes: {len(self.scenes)} ({kept} in the block); control points per scene {self.control_points}",
+            f"overlapping pairs: {len(self.pairs)}, tie points " + ", ".join(f"{p['i']}-{p['j']}: {p['ties']}" for p in self.pairs),
+            *(f"left out: {self.scenes[int(k)]}: {why}" for k, why in self.left_out.items()),
+            f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
+            + ", ".join(f"{r:.3f}" for r in self.rms_px),
+            f"mosaic: {self.shape[0]} x {self.shape[1]} px",
+            "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
+        ]
+
+
+def _to_map(mapping_to_ref, transform: Affine):
+    def f(x, y):
+        rx, ry = mapping_to_ref(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        return pixel_to_world(transform, rx, ry)
+
+    return f
+
+
+def _overlap(i_shape, i_to_ref, ref_to_j, j_shape, samples: int = 16) -> float:
+    """Fraction of scene ``i`` (a grid of samples) that falls inside scene ``j``."""
+    h, w = i_shape
+    ys, xs = np.meshgrid(np.linspace(0, h - 1, samples), np.linspace(0, w - 1, samples), indexing="ij")
+    rx, ry = i_to_ref(xs.ravel(), ys.ravel())
+    jx, jy = ref_to_j(rx, ry)
+    inside = (jx >= 0) & (jx <= j_shape[1] - 1) & (jy >= 0) & (jy <= j_shape[0] - 1)
+    return float(inside.mean())
+
+
+def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
+                 shapes: list, feather_px: float, method: str) -> int:
+    """Compute and write one output tile; returns the number of pixels covered."""
+    import zarr
+
+    r0, r1, c0, c1 = window
+    ys, xs = np.mgrid[r0:r1, c0:c1].astype(np.float64)
+    ex, ny = pixel_to_world(transform, xs, ys)
+    ground = np.column_stack([ex.ravel(), ny.ravel(), np.zeros(ex.size)])
+    nb = readers[0].shape[0] if readers else 1
+    values = np.full((len(models), nb, r1 - r0, c1 - c0), np.nan, dtype=np.float32)
+    scores = np.full((len(models), r1 - r0, c1 - c0), np.nan)
+    for k, ((model, params), reader, shape) in enumerate(zip(models, readers, shapes)):
+        xy = model.project(params, ground)
+        x, y = xy[:, 0].reshape(xs.shape), xy[:, 1].reshape(xs.shape)
+        s = centre_score(x, y, shape)
+        if not np.any(s <= 1.0):
+            continue
+        scores[k] = np.where(s <= 1.0, s, np.nan)
+        values[k] = reader.sample(x, y, method=method)
+    feather = 2.0 * feather_px / max(min(min(s) for s in shapes), 1)
+    mosaic, source, _ = blend(values, scores, feather=feather)
+    g = zarr.open_group(store, mode="r+")
+    g["mosaic"][:, r0:r1, c0:c1] = mosaic
+    g["source"][r0:r1, c0:c1] = source
+    return int((source != NO_SOURCE).sum())
+
+
+def mosaic(
+    scenes: list,
+    *,
+    reference,
+    out: str | os.PathLike | None = None,
+    order: int = 2,
+    tile: int = 512,
+    control_scenes: list[int] | None = None,
+    feather: float = 8.0,
+    resampling: str = "bilinear",
+    client=None,
+    scheduler: str | None = None,
+    overwrite: bool = False,
+    show_progress=None,
+) -> xr.Dataset:
+    """Adjust overlapping scenes as one block on a reference and write one seamless mosaic.
+
+    Parameters
+    ----------
+    scenes : list of str, PathLike
+        GeoTIFF/COG/Zarr scenes (a georeference is not needed: each is found on the reference).
+    reference : str or PathLike
+        Orthoimage: the output's CRS and pixel, and the source of control points.
+    out : str or PathLike, optional
+        Zarr store to write (atomically; output safety as in :func:`geocoder.register`).
+        Without it the mosaic is computed into memory.
+    order : int
+        Polynomial order of every scene's model (1-3).
+    tile : int
+        Tile of all tile-parallel stages and of the output (a multiple of 64).
+    control_scenes : list of int, optional
+        Scenes whose reference matches serve as control points (default all); the others
+        are placed by tie points only (sparse control).
+    feather : float
+        Width of the blend across a seam, in output pixels.
+    resampling : str
+        Interpolator of the single resampling of every scene.
+    client, scheduler
+        Where to run (as :func:`geocoder.register`).
+    overwrite : bool
+        Replace an existing ``out`` that geocoder wrote.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``mosaic (band, y, x)`` float32, ``source (y, x)`` uint16 (index into
+        ``attrs["scenes"]``, 65535 = none), the reference CRS and transform; ``attrs``: the
+        adjusted ``models`` and the ``summary`` (JSON).
+    """
+    if not scenes:
+        raise InputError("scenes", "no scenes given")
+    if not 1 <= order <= 3:
+        raise ValueError(f"order must be 1, 2 or 3, got {order}")
+    opts = RegisterOptions(tile=tile, order=order, dense=False)
+    opts.validate()
+    if out is not None:
+        out = check_output(out, inputs=(*scenes, reference), overwrite=overwrite)
+    ref = open_scene(reference, chunks=tile)
+    opened = [open_scene(s, chunks=tile) for s in scenes]
+    bands = {s.sizes["band"] for s in opened}
+    if len(bands) != 1:
+        raise InputError(scenes[0], f"the scenes have different band counts {sorted(bands)}; give scenes with the same bands")
+    transform = scene_transform(ref) or Affine.identity()
+    summary = MosaicSummary(scenes=[s.attrs["source"] for s in opened])
+    timer = _Timer(summary)  # type: ignore[arg-type]
+    allowed = set(range(len(scenes)) if control_scenes is None else control_scenes)
+    key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile,
+                      control=sorted(allowed), feather=feather, resampling=resampling)
+    job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
+    keep = False
+    try:
+        with progress.reporting(show_progress), dask_client(client, scheduler) as c:
+            with timer("ingest"):
+                ref = _ingest(job, "reference", ref, tile, c)
+                opened = [_ingest(job, f"scene-{k}", s, tile, c) for k, s in enumerate(opened)]
+            ref_reader = WindowReader(job.file("reference.zarr"))
+            readers = [WindowReader(job.file(f"scene-{k}.zarr")) for k in range(len(opened))]
+            shapes = [(s.sizes["y"], s.sizes["x"]) for s in opened]
+            control, ref_to, to_ref = [], {}, {}
+            with timer("control points"):
+                for k, s in enumerate(opened):
+                    try:
+                        tp, mapping, _ = _match(job, f"ref-{k}", key, ref, s, ref_reader, readers[k], opts)
+                    except GeocoderError as exc:
+                        summary.left_out[str(k)] = f"not found on the reference ({exc})"
+                        continue
+                    tp = tp.select(tp.inlier)
+                    ref_to[k] = mapping
+                    to_ref[k] = fit_polymap(tp.dist_x, tp.dist_y, tp.base_x, tp.base_y, order=order)
+                    if k in allowed:
+                        ex, ny = pixel_to_world(transform, tp.base_x, tp.base_y)
+                        control.append(Matches(-1, k, np.column_stack([ex, ny]), np.column_stack([tp.dist_x, tp.dist_y]),
+                                               np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+            summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
+            ties = []
+            with timer("tie points"):
+                found = sorted(ref_to)
+                for a, i in enumerate(found):
+                    for j in found[a + 1:]:
+                        if _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j]) < 0.05:
+                            continue
+                        try:
+                            prior = _affine_between(to_ref[i], ref_to[j], shapes[i])
+                            tp, _, _ = _match(job, f"pair-{i}-{j}", key, opened[i], opened[j], readers[i], readers[j], opts,
+                                              prior=prior)
+                        except GeocoderError as exc:
+                            summary.pairs.append({"i": i, "j": j, "ties": 0, "problem": str(exc)})
+                            continue
+                        tp = tp.select(tp.inlier)
+                        ties.append(Matches(i, j, np.column_stack([tp.base_x, tp.base_y]), np.column_stack([tp.dist_x, tp.dist_y]),
+                                            np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+                        summary.pairs.append({"i": i, "j": j, "ties": len(tp)})
+            ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
+            for k in range(len(opened)):
+                if not ok[k] and str(k) not in summary.left_out:
+                    summary.left_out[str(k)] = "tied to no control point (no overlap with a controlled scene)"
+            block = [k for k in range(len(opened)) if ok[k]]
+            if not block:
+                raise InputError(reference, "no scene could be placed on the reference")
+            index = {k: n for n, k in enumerate(block)}
+            with timer("block adjustment"):
+                problem = build_problem(
+                    [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
+                    [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
+                    [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
+                    order=order,
+                )
+                result = job.cached("adjustment", lambda: solve(problem))
+            summary.sigma0, summary.iterations = float(result.sigma0), int(result.iterations)
+            summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
+                              for n in range(len(block))]
+            models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
+            ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], tile, opened[0].sizes["band"])
+            summary.shape = (ds.sizes["y"], ds.sizes["x"])
+            ds.attrs.update(_attrs(summary, block, models, order))
+            with timer("mosaic"):
+                store = job.file("output.zarr")
+                if not job.done("output-created"):
+                    ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
+                    job.save("output-created")
+                tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
+                    store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
+                    [shapes[k] for k in block], feather, resampling) for t in grid}
+                job.run_tiles("mosaic", tasks, phase="mosaic tiles")
+            import zarr
+
+            zarr.open_group(store, mode="r+").attrs.update(_attrs(summary, block, models, order))
+            if out is None:
+                result_ds = xr.open_zarr(store, decode_coords="all", consolidated=False).load()
+                return result_ds
+            commit_output(store, out, overwrite=overwrite)
+    except GeocoderError:
+        raise
+    except BaseException:
+        keep = True  # interrupted or crashed: a rerun resumes
+        raise
+    finally:
+        if keep and out is not None:
+            job.release()
+        else:
+            job.remove()
+    return xr.open_zarr(out, decode_coords="all", consolidated=False)
+
+
+def _affine_between(i_to_ref, ref_to_j, shape, samples: int = 9) -> np.ndarray:
+    """Affine scene ``i`` pixel -> scene ``j`` pixel through the reference (2x3), fitted on a grid."""
+    h, w = shape
+    ys, xs = np.meshgrid(np.linspace(0, h - 1, samples), np.linspace(0, w - 1, samples), indexing="ij")
+    jx, jy = ref_to_j(*i_to_ref(xs.ravel(), ys.ravel()))
+    design = np.column_stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    return np.linalg.lstsq(design, np.column_stack([jx, jy]), rcond=None)[0].T
+
+
+def _match(job: Job, name: str, key: str, base, dist, base_reader, dist_reader, opts: RegisterOptions, prior=None):
+    """Tie points of one pair (the registration's stages), cached in a sub-job of ``job``."""
+    sub = Job(job.file("pairs", name), key)
+    try:
+        summary = RegisterSummary(base=base.attrs.get("source", ""), distorted=dist.attrs.get("source", ""))
+        result = find_tiepoints(base, dist, base_reader, dist_reader, opts, summary, _Timer(summary), sub, prior=prior)
+    finally:
+        sub.release()
+    return result
+
+
+def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nbands: int):
+    """Empty output dataset on the reference's pixel grid covering every scene's footprint."""
+    corners = []
+    for f, (h, w) in zip(to_ref, shapes):
+        t = np.linspace(0, 1, 17)
+        xs = np.concatenate([t * (w - 1), np.full(17, w - 1.0), t * (w - 1), np.zeros(17)])
+        ys = np.concatenate([np.zeros(17), t * (h - 1), np.full(17, h - 1.0), t * (h - 1)])
+        corners.append(np.column_stack(f(xs, ys)))
+    pts = np.concatenate(corners)
+    c0, r0 = np.floor(pts.min(axis=0)).astype(int)
+    c1, r1 = np.ceil(pts.max(axis=0)).astype(int) + 1
+    transform = (scene_transform(ref) or Affine.identity()) * Affine.translation(c0, r0)
+    height, width = int(r1 - r0), int(c1 - c0)
+    grid = TileGrid.regular(height, width, tile)
+    chunks = ((nbands,), *(tuple(min(tile, n - i) for i in range(0, n, tile)) for n in (height, width)))
+    xs, _ = pixel_to_world(transform, np.arange(width), np.zeros(width))
+    _, ys = pixel_to_world(transform, np.zeros(height), np.arange(height))
+    ds = xr.Dataset(
+        {
+            "mosaic": (("band", "y", "x"), da.full((nbands, height, width), np.nan, dtype=np.float32, chunks=chunks)),
+            "source": (("y", "x"), da.full((height, width), NO_SOURCE, dtype=np.uint16, chunks=chunks[1:]),
+                       {"long_name": "index of the scene each pixel comes from (attrs scenes)", "_FillValue_meaning": "65535: none"}),
+        },
+        coords={"band": np.arange(1, nbands + 1), "y": ys, "x": xs},
+    )
+    if ref.attrs.get("georeferenced"):
+        ds = ds.rio.write_crs(ref.rio.crs).rio.write_transform(transform)
+    return ds, grid, transform
+
+
+def _attrs(summary: MosaicSummary, block: list[int], models: list, order: int) -> dict:
+    from dataclasses import asdict
+
+    return {
+        "scenes": json.dumps([summary.scenes[k] for k in block]),
+        "models": json.dumps([{"order": order, "origin": m.origin[:2].tolist(), "scale": m.scale, "params": np.asarray(p).tolist()}
+                              for m, p in models]),
+        "summary": json.dumps(asdict(summary), default=float),
+        **product_attrs("mosaic"),
+    }
+
+
+def load_models(ds: xr.Dataset) -> list:
+    """The adjusted per-scene models of a mosaic: ``(MapPolynomial, params)`` in ``attrs["scenes"]`` order."""
+    from ..adjust.models import MapPolynomial
+
+    return [(MapPolynomial(m["order"], tuple(m["origin"]), m["scale"]), np.asarray(m["params"]))
+            for m in json.loads(ds.attrs["models"])]
+
+
+def world_grid(ds: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """Map coordinates of every output pixel centre (from the store's x/y coordinates)."""
+    return np.meshgrid(ds.x.values, ds.y.values)
+
+
+__all__ = ["MosaicSummary", "load_models", "mosaic", "world_grid"]

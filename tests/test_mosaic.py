@@ -1,0 +1,136 @@
+"""Mosaic of a 2 x 2 block: scenes found on a reference, block adjustment, one seamless grid.
+
+Truth: every scene is the reference orthoimage seen through a known mapping ``T_k`` (scene
+pixel -> ortho pixel: rotation, scale, a quadratic term, new noise and gain), so the error of
+an output pixel taken from scene ``k`` is ``|T_k(model_k(p)) - p|`` in output pixels.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from affine import Affine
+
+from geocoder.kernels.resample import sample
+from geocoder.mosaic import load_models, mosaic
+from geocoder.scene import write_geotiff, world_to_pixel
+from geocoder.simulate.texture import synthetic_ortho
+
+pytestmark = pytest.mark.cluster
+
+ORTHO = Affine(2.0, 0.0, 500000.0, 0.0, -2.0, 5800000.0)
+SIZE = 320
+ORIGINS = [(96, 96), (96, 288), (288, 96), (288, 288)]  # (row, col) in the ortho: 40 % overlap
+
+
+def truth(k: int):
+    """``T_k``: scene pixel -> ortho pixel."""
+    r0, c0 = ORIGINS[k]
+    angle = np.deg2rad([2.0, -3.0, 1.5, -1.0][k])
+    scale = [1.0, 1.02, 0.98, 1.01][k]
+    q = [1.5, -2.0, 1.0, 2.5][k] / (SIZE / 2) ** 2
+
+    def t(x, y):
+        u, v = x - SIZE / 2, y - SIZE / 2
+        ox = c0 + SIZE / 2 + scale * (np.cos(angle) * u - np.sin(angle) * v) + q * u * v
+        oy = r0 + SIZE / 2 + scale * (np.sin(angle) * u + np.cos(angle) * v) + q * u * u
+        return ox, oy
+
+    return t
+
+
+@pytest.fixture(scope="module")
+def block(tmp_path_factory):
+    d = tmp_path_factory.mktemp("block")
+    ortho = np.squeeze(synthetic_ortho((768, 768), seed=21)).astype(np.float32)
+    write_geotiff(d / "ortho.tif", ortho, transform=ORTHO, crs="EPSG:32633")
+    rng = np.random.default_rng(3)
+    paths = []
+    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    for k in range(4):
+        ox, oy = truth(k)(xs, ys)
+        img = sample(ortho, ox, oy, method="cubic")
+        img = (1.1 + 0.05 * k) * img + 3.0 * k + rng.normal(0, 0.01 * np.nanstd(img), img.shape)
+        paths.append(d / f"scene{k}.tif")
+        write_geotiff(paths[-1], img.astype(np.float32))  # no georeference: found on the reference
+    return d, paths
+
+
+def errors(ds) -> tuple[np.ndarray, np.ndarray]:
+    """Per output pixel: geometric error (output px) of the scene it comes from, and of every pair."""
+    models = load_models(ds)
+    ex, ny = np.meshgrid(ds.x.values, ds.y.values)
+    gx, gy = world_to_pixel(ORTHO, ex, ny)
+    ground = np.column_stack([ex.ravel(), ny.ravel(), np.zeros(ex.size)])
+    scenes = [int(s.rsplit("scene", 1)[1][0]) for s in json.loads(ds.attrs["scenes"])]
+    pos = []
+    for (model, params), k in zip(models, scenes):
+        xy = model.project(params, ground)
+        x, y = xy[:, 0].reshape(ex.shape), xy[:, 1].reshape(ex.shape)
+        inside = (x >= 0) & (x <= SIZE - 1) & (y >= 0) & (y <= SIZE - 1)
+        tx, ty = truth(k)(x, y)
+        pos.append(np.where(inside, tx, np.nan) + 1j * np.where(inside, ty, np.nan))
+    pos = np.array(pos)
+    src = ds.source.values
+    own = np.full(src.shape, np.nan)
+    for n in range(len(models)):
+        m = src == n
+        own[m] = np.abs(pos[n][m] - (gx[m] + 1j * gy[m]))
+    seams = [np.abs(pos[i] - pos[j]) for i in range(len(pos)) for j in range(i + 1, len(pos))]
+    return own, np.concatenate([s[np.isfinite(s)] for s in seams])
+
+
+def test_block_mosaic_against_truth(block, client, tmp_path):
+    d, paths = block
+    out = tmp_path / "mosaic.zarr"
+    ds = mosaic(paths, reference=d / "ortho.tif", out=out, tile=128, client=client)
+    s = json.loads(ds.attrs["summary"])
+    assert s["left_out"] == {} and len(s["pairs"]) == 6
+    assert ds.rio.crs.to_epsg() == 32633
+    own, seam = errors(ds)
+    valid = np.isfinite(own)
+    assert valid.mean() > 0.5
+    rmse = float(np.sqrt(np.mean(own[valid] ** 2)))
+    assert rmse < 0.1, rmse
+    assert np.nanmax(own) < 0.5
+    assert float(np.sqrt(np.mean(seam**2))) < 0.2  # neighbours agree wherever they overlap
+    # every source pixel has a value; uncovered pixels have none
+    covered = ds.source.values != 65535
+    assert np.isfinite(ds.mosaic.values[0][covered]).all() and np.isnan(ds.mosaic.values[0][~covered]).all()
+
+
+def test_sparse_control_is_carried_by_tie_points(block, client, tmp_path):
+    """Control on one corner scene only: the tie points place the other three (seed 000 Table 5's point)."""
+    d, paths = block
+    ds = mosaic(paths, reference=d / "ortho.tif", tile=128, client=client, control_scenes=[0])
+    s = json.loads(ds.attrs["summary"])
+    assert s["control_points"][1:] == [0, 0, 0] and s["left_out"] == {}
+    own, seam = errors(ds)
+    assert float(np.sqrt(np.nanmean(own**2))) < 0.3
+    assert float(np.sqrt(np.mean(seam**2))) < 0.2
+
+
+def test_cli_mosaic_and_blend_kernel(block, client, tmp_path):
+    from geocoder.mosaic.compose import NO_SOURCE, blend
+
+    d, paths = block
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "geocoder.cli", "-q", "mosaic", *map(str, paths), "--reference", str(d / "ortho.tif"),
+                        "--out", str(tmp_path / "m.zarr"), "--tile", "128", "--control-scenes", "0,3",
+                        "--scheduler", client.scheduler.address], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "overlapping pairs: 6" in r.stdout and "control points per scene" in r.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.zarr"]
+    # the blend: weights sum to one where covered, the lowest score is the source, feathered across the seam
+    scores = np.array([[[0.2, 0.50, 0.52, 0.9]], [[0.9, 0.52, 0.50, np.nan]]])
+    values = np.stack([np.full((1, 1, 4), 10.0), np.full((1, 1, 4), 20.0)])
+    mosaic_, source, weight = blend(values, scores, feather=0.1)
+    np.testing.assert_array_equal(source[0], [0, 0, 1, 0])
+    np.testing.assert_allclose(weight.sum(axis=0)[0], 1.0)
+    np.testing.assert_allclose(mosaic_[0, 0], [10.0, 10 * 1 / 1.8 + 20 * 0.8 / 1.8, 10 * 0.8 / 1.8 + 20 / 1.8, 10.0], rtol=1e-6)
+    m, s, _ = blend(values, np.full((2, 1, 4), np.nan), feather=0.1)
+    assert np.isnan(m).all() and (s == NO_SOURCE).all()
