@@ -184,11 +184,13 @@ def ingest(src, out, tile, nodata, overwrite, scheduler):
               help="Comma-separated 0-based scenes whose reference matches are control points (default all; the rest are placed by tie points).")
 @click.option("--feather", default=8.0, show_default=True, type=click.FloatRange(min=0), help="Blend width across seams, in output pixels.")
 @click.option("--resampling", default="bilinear", show_default=True, type=click.Choice(["nearest", "bilinear", "cubic", "lanczos"]))
+@click.option("--balance/--no-balance", default=True, show_default=True,
+              help="Radiometric balance: a gain and offset per scene and band from the grey values at control and tie points.")
 @tile_option
 @overwrite_option
 @scheduler_option
 @_friendly
-def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, tile, overwrite, scheduler):
+def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, balance, tile, overwrite, scheduler):
     """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
     from .mosaic import MosaicSummary
     from .mosaic import mosaic as run
@@ -205,7 +207,7 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, t
             raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
     t0 = time.perf_counter()
     ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
-             feather=feather, resampling=resampling, scheduler=scheduler, overwrite=overwrite)
+             feather=feather, resampling=resampling, balance=balance, scheduler=scheduler, overwrite=overwrite)
     import json
 
     for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():

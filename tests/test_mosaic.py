@@ -99,6 +99,18 @@ def test_block_mosaic_against_truth(block, client, tmp_path):
     # every source pixel has a value; uncovered pixels have none
     covered = ds.source.values != 65535
     assert np.isfinite(ds.mosaic.values[0][covered]).all() and np.isnan(ds.mosaic.values[0][~covered]).all()
+    # radiometric balance: scenes rendered with gains 1.10-1.25 and offsets 0-9 come back to the reference's grey values
+    import rioxarray
+
+    ortho = rioxarray.open_rasterio(d / "ortho.tif").values[0]
+    ex, ny = np.meshgrid(ds.x.values, ds.y.values)
+    gx, gy = (np.rint(v).astype(int) for v in world_to_pixel(ORTHO, ex, ny))
+    diff = (ds.mosaic.values[0] - ortho[gy, gx])[covered]
+    assert float(np.sqrt(np.mean(diff**2))) < 0.05 * float(ortho.std())
+    before, after = s["seam_step"]
+    assert after < 0.2 * before
+    gains = np.array(json.loads(ds.attrs["radiometry"]))[:, 0]
+    np.testing.assert_allclose(gains[:, 0], 1 / (1.1 + 0.05 * np.arange(4)), rtol=0.02)
 
 
 def test_sparse_control_is_carried_by_tie_points(block, client, tmp_path):

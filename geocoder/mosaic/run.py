@@ -30,7 +30,7 @@ from affine import Affine
 
 from .. import progress
 from ..errors import GeocoderError, InputError
-from ..geometry import pixel_to_world
+from ..geometry import pixel_to_world, world_to_pixel
 from ..kernels.polynomial import fit_polymap
 from ..outputs import check_output, commit_output, product_attrs
 from ..pipeline.job import Job, fingerprint
@@ -40,6 +40,7 @@ from ..scene import WindowReader, open_scene, scene_transform
 from ..tiles import TileGrid
 from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
+from .radiometry import seam_step, solve_balance
 
 log = logging.getLogger("geocoder")
 
@@ -55,6 +56,7 @@ class MosaicSummary:
     sigma0: float = float("nan")
     iterations: int = 0
     rms_px: list[float] = field(default_factory=list)
+    seam_step: list[float] = field(default_factory=list)
     shape: tuple[int, int] = (0, 0)
     seconds: dict = field(default_factory=dict)
 
@@ -66,6 +68,8 @@ class MosaicSummary:
             *(f"left out: {self.scenes[int(k)]}: {why}" for k, why in self.left_out.items()),
             f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
             + ", ".join(f"{r:.3f}" for r in self.rms_px),
+            *([f"radiometric balance: grey-value step at the tie points {self.seam_step[0]:.3g} before, "
+               f"{self.seam_step[1]:.3g} after (RMS, all bands)"] if self.seam_step else []),
             f"mosaic: {self.shape[0]} x {self.shape[1]} px",
             "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
         ]
@@ -90,7 +94,7 @@ def _overlap(i_shape, i_to_ref, ref_to_j, j_shape, samples: int = 16) -> float:
 
 
 def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
-                 shapes: list, feather_px: float, method: str) -> int:
+                 shapes: list, feather_px: float, method: str, balance: np.ndarray) -> int:
     """Compute and write one output tile; returns the number of pixels covered."""
     import zarr
 
@@ -108,7 +112,7 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
         if not np.any(s <= 1.0):
             continue
         scores[k] = np.where(s <= 1.0, s, np.nan)
-        values[k] = reader.sample(x, y, method=method)
+        values[k] = balance[k, :, 0, None, None] * reader.sample(x, y, method=method) + balance[k, :, 1, None, None]
     feather = 2.0 * feather_px / max(min(min(s) for s in shapes), 1)
     mosaic, source, _ = blend(values, scores, feather=feather)
     g = zarr.open_group(store, mode="r+")
@@ -127,6 +131,7 @@ def mosaic(
     control_scenes: list[int] | None = None,
     feather: float = 8.0,
     resampling: str = "bilinear",
+    balance: bool = True,
     client=None,
     scheduler: str | None = None,
     overwrite: bool = False,
@@ -154,6 +159,9 @@ def mosaic(
         Width of the blend across a seam, in output pixels.
     resampling : str
         Interpolator of the single resampling of every scene.
+    balance : bool
+        Radiometric balance: a gain and offset per scene and band, fitted to the reference's
+        grey values at the control points and to each other's at the tie points.
     client, scheduler
         Where to run (as :func:`geocoder.register`).
     overwrite : bool
@@ -164,7 +172,8 @@ def mosaic(
     xarray.Dataset
         ``mosaic (band, y, x)`` float32, ``source (y, x)`` uint16 (index into
         ``attrs["scenes"]``, 65535 = none), the reference CRS and transform; ``attrs``: the
-        adjusted ``models`` and the ``summary`` (JSON).
+        adjusted ``models``, the ``radiometry`` (gain, offset per scene and band) and the
+        ``summary`` (JSON).
     """
     if not scenes:
         raise InputError("scenes", "no scenes given")
@@ -184,7 +193,7 @@ def mosaic(
     timer = _Timer(summary)  # type: ignore[arg-type]
     allowed = set(range(len(scenes)) if control_scenes is None else control_scenes)
     key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile,
-                      control=sorted(allowed), feather=feather, resampling=resampling)
+                      control=sorted(allowed), feather=feather, resampling=resampling, balance=balance)
     job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     keep = False
     try:
@@ -249,9 +258,18 @@ def mosaic(
             summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
                               for n in range(len(block))]
             models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
+            nbands = opened[0].sizes["band"]
+            gains = np.tile([1.0, 0.0], (len(block), nbands, 1))
+            if balance:
+                with timer("radiometric balance"):
+                    gains, summary.seam_step = _balance(
+                        [readers[k] for k in block], ref_reader, transform, tile,
+                        [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
+                        [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
+                        nbands)
             ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], tile, opened[0].sizes["band"])
             summary.shape = (ds.sizes["y"], ds.sizes["x"])
-            ds.attrs.update(_attrs(summary, block, models, order))
+            ds.attrs.update(_attrs(summary, block, models, order, gains))
             with timer("mosaic"):
                 store = job.file("output.zarr")
                 if not job.done("output-created"):
@@ -259,11 +277,11 @@ def mosaic(
                     job.save("output-created")
                 tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
                     store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
-                    [shapes[k] for k in block], feather, resampling) for t in grid}
+                    [shapes[k] for k in block], feather, resampling, gains) for t in grid}
                 job.run_tiles("mosaic", tasks, phase="mosaic tiles")
             import zarr
 
-            zarr.open_group(store, mode="r+").attrs.update(_attrs(summary, block, models, order))
+            zarr.open_group(store, mode="r+").attrs.update(_attrs(summary, block, models, order, gains))
             if out is None:
                 result_ds = xr.open_zarr(store, decode_coords="all", consolidated=False).load()
                 return result_ds
@@ -279,6 +297,47 @@ def mosaic(
         else:
             job.remove()
     return xr.open_zarr(out, decode_coords="all", consolidated=False)
+
+
+def sample_points(reader: WindowReader, x: np.ndarray, y: np.ndarray, tile: int, *, radius: int = 3) -> np.ndarray:
+    """Mean values ``(band, n)`` of a scene over ``(2 radius + 1)^2`` px around scattered points.
+
+    A window mean, not the value at the point: tie points sit on corners, where the two
+    scenes' different resampling blur changes single values but hardly a window's mean. One
+    small window is read per tile of points.
+    """
+    off = np.arange(-radius, radius + 1, dtype=np.float64)
+    ox, oy = np.meshgrid(off, off)
+    out = np.full((reader.shape[0], x.size), np.nan, dtype=np.float32)
+    ok = np.isfinite(x) & np.isfinite(y)
+    key = np.where(ok, (np.floor(y / tile) * 1e6 + np.floor(x / tile)), -1)
+    for k in np.unique(key[ok]):
+        sel = key == k
+        v = reader.sample(x[sel, None, None] + ox, y[sel, None, None] + oy, method="bilinear")
+        with np.errstate(invalid="ignore"):
+            out[:, sel] = np.mean(v, axis=(-2, -1))  # NaN if the window leaves the scene
+    return out
+
+
+def _balance(readers: list, ref_reader: WindowReader, transform: Affine, tile: int, control: list, ties: list, nbands: int):
+    """Gain and offset per scene and band (``(K, B, 2)``) and the seam step before and after."""
+    ref_bands = ref_reader.shape[0]
+    cvals = []
+    for m in control:
+        rx, ry = world_to_pixel(transform, m.a[:, 0], m.a[:, 1])
+        cvals.append((m.j, sample_points(readers[m.j], m.b[:, 0], m.b[:, 1], tile), sample_points(ref_reader, rx, ry, tile)))
+    tvals = [(t.i, t.j, sample_points(readers[t.i], t.a[:, 0], t.a[:, 1], tile),
+              sample_points(readers[t.j], t.b[:, 0], t.b[:, 1], tile)) for t in ties]
+    gains = np.zeros((len(readers), nbands, 2))
+    before, after = [], []
+    for b in range(nbands):
+        rb = b if b < ref_bands else 0
+        c = [(k, v[b], r[rb]) for k, v, r in cvals] if ref_bands == nbands else []  # else: scenes among themselves
+        t = [(i, j, vi[b], vj[b]) for i, j, vi, vj in tvals]
+        gains[:, b] = solve_balance(len(readers), c, t)
+        before.append(seam_step(t))
+        after.append(seam_step(t, gains[:, b]))
+    return gains, [float(np.sqrt(np.nanmean(np.square(before)))), float(np.sqrt(np.nanmean(np.square(after))))]
 
 
 def _affine_between(i_to_ref, ref_to_j, shape, samples: int = 9) -> np.ndarray:
@@ -331,10 +390,11 @@ def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nband
     return ds, grid, transform
 
 
-def _attrs(summary: MosaicSummary, block: list[int], models: list, order: int) -> dict:
+def _attrs(summary: MosaicSummary, block: list[int], models: list, order: int, gains: np.ndarray) -> dict:
     from dataclasses import asdict
 
     return {
+        "radiometry": json.dumps(np.asarray(gains).tolist()),
         "scenes": json.dumps([summary.scenes[k] for k in block]),
         "models": json.dumps([{"order": order, "origin": m.origin[:2].tolist(), "scale": m.scale, "params": np.asarray(p).tolist()}
                               for m, p in models]),
