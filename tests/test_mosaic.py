@@ -55,6 +55,10 @@ def block(tmp_path_factory):
         img = (1.1 + 0.05 * k) * img + 3.0 * k + rng.normal(0, 0.01 * np.nanstd(img), img.shape)
         paths.append(d / f"scene{k}.tif")
         write_geotiff(paths[-1], img.astype(np.float32))  # no georeference: found on the reference
+    # on the reference (georeferenced: a small scene at the reference's edge defeats the blind
+    # coarse alignment), overlapping no other scene
+    write_geotiff(d / "far.tif", ortho[620:760, 20:180], transform=ORTHO * Affine.translation(20, 620), crs="EPSG:32633")
+    write_geotiff(d / "noise.tif", rng.normal(100, 20, (200, 200)).astype(np.float32))  # not on the reference
     return d, paths
 
 
@@ -116,9 +120,14 @@ def test_block_mosaic_against_truth(block, client, tmp_path):
 def test_sparse_control_is_carried_by_tie_points(block, client, tmp_path):
     """Control on one corner scene only: the tie points place the other three (seed 000 Table 5's point)."""
     d, paths = block
-    ds = mosaic(paths, reference=d / "ortho.tif", tile=128, client=client, control_scenes=[0])
+    ds = mosaic([*paths, d / "far.tif", d / "noise.tif"], reference=d / "ortho.tif", tile=128, client=client,
+                control_scenes=[0])
     s = json.loads(ds.attrs["summary"])
-    assert s["control_points"][1:] == [0, 0, 0] and s["left_out"] == {}
+    assert s["control_points"][1:4] == [0, 0, 0]
+    # reported and left out, never silently warped: one has no tie to a controlled scene, one is not on the reference
+    assert sorted(s["left_out"]) == ["4", "5"]
+    assert "tied to no control point" in s["left_out"]["4"] and "not found on the reference" in s["left_out"]["5"]
+    assert len(json.loads(ds.attrs["scenes"])) == 4
     own, seam = errors(ds)
     assert float(np.sqrt(np.nanmean(own**2))) < 0.3
     assert float(np.sqrt(np.mean(seam**2))) < 0.2

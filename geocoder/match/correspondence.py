@@ -151,6 +151,8 @@ def _refine(base, base_origin, base_points, ii, dist, dist_origin, x0, y0, jac, 
     """Least-squares refinement of the distorted positions of base points ``ii``."""
     br0, bc0 = base_origin
     dr0, dc0 = dist_origin
+    if min(np.shape(dist)[-2:]) < 3:  # the distorted window is a sliver along the image's edge
+        return TiePoints.empty(), 0
     big = extract_patches(base, base_points.x[ii] - bc0, base_points.y[ii] - br0, opts.refine)
     fine = refine_shift(big, dist, x0 - dc0, y0 - dr0, jac, opts.refine, max_move=opts.max_move)
     acc = fine.ok & (fine.rho > opts.rho_final) & np.isfinite(big).all(axis=1)
