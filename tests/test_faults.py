@@ -310,3 +310,15 @@ def test_identical_images_have_no_outside_pixels(work, tmp_path, client):
     ds = register(work / "base.tif", work / "base.tif", tile=128, client=client, dense=False)
     assert int((ds.status.values == Status.OUTSIDE).sum()) == 0
     assert np.isfinite(ds.registered.values).all()
+
+
+def test_options_are_honoured(work, client):
+    """``options=`` was silently overwritten by the keywords' defaults (order 3 ran as 2, dense=False as dense)."""
+    from geocoder import RegisterOptions, Status, register
+
+    ds = register(work / "base.tif", work / "dist.tif", client=client, options=RegisterOptions(order=3, dense=False, tile=128))
+    assert json.loads(ds.attrs["mapping"])["order"] == 3
+    assert set(np.unique(ds.status.values)) <= {Status.MODEL, Status.OUTSIDE}
+    # a keyword given explicitly still wins
+    ds = register(work / "base.tif", work / "dist.tif", client=client, order=1, options=RegisterOptions(order=3, dense=False, tile=128))
+    assert json.loads(ds.attrs["mapping"])["order"] == 1

@@ -221,14 +221,14 @@ def register(
     distorted,
     *,
     out: str | os.PathLike | None = None,
-    resampling: str = "bilinear",
-    tile: int = 512,
+    resampling: str | None = None,
+    tile: int | None = None,
     client=None,
     scheduler: str | None = None,
-    band: int = 1,
+    band: int | None = None,
     dist_band: int | None = None,
-    order: int = 2,
-    dense: bool = True,
+    order: int | None = None,
+    dense: bool | None = None,
     nodata: float | None = None,
     dist_nodata: float | None = None,
     options: RegisterOptions | None = None,
@@ -262,7 +262,9 @@ def register(
     nodata, dist_nodata : float, optional
         Extra nodata values for inputs that do not declare theirs.
     options : RegisterOptions, optional
-        All other options; the keywords above override it.
+        All options; the keywords above, where given, override it (the defaults of
+        ``resampling``, ``tile``, ``band``, ``order`` and ``dense`` are :class:`RegisterOptions`'s:
+        bilinear, 512, 1, 2, True).
     resume : bool
         Continue the unfinished job writing ``out`` (same inputs, options and version):
         tiles finished by an earlier, interrupted run are not computed again. False
@@ -281,11 +283,10 @@ def register(
         in the ``tiepoints`` group of ``out`` and in ``Dataset.attrs`` as ``tiepoints``
         when computed in memory.
     """
-    opts = replace(
-        options or RegisterOptions(), tile=tile, resampling=resampling, band=band,
-        dist_band=dist_band, order=order, dense=dense,
-    )
+    given = {"tile": tile, "resampling": resampling, "band": band, "dist_band": dist_band, "order": order, "dense": dense}
+    opts = replace(options or RegisterOptions(), **{k: v for k, v in given.items() if v is not None})
     opts.validate()
+    tile = opts.tile
     if out is not None:
         out = check_output(out, inputs=(base, distorted), overwrite=overwrite)
         if not storage.is_url(out) and not os.path.isdir(os.path.dirname(out)):
