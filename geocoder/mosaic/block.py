@@ -104,17 +104,33 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
         oxy.append(c.b)
         osig.append(c.sigma)
         n += m
+    # multi-ray ties: a point of scene i matched in several neighbours (the same interest point,
+    # the same coordinates) is one ground point seen by all of them
+    linked: dict[tuple[int, float, float], int] = {}
     for t in ties:
         m = len(t)
-        ex, ny = approx[t.i](t.a[:, 0], t.a[:, 1])
-        ground.append(np.column_stack([ex, ny, np.zeros(m)]))
-        gweight.append(np.broadcast_to(np.diag([0.0, 0.0, wz_tie]), (m, 3, 3)))
-        for scene, xy in ((t.i, t.a), (t.j, t.b)):
-            ofr.append(np.full(m, scene))
-            opt.append(n + np.arange(m))
-            oxy.append(xy)
-            osig.append(t.sigma)
-        n += m
+        ids = np.empty(m, dtype=np.int64)
+        fresh = []
+        for q, (x, y) in enumerate(t.a):
+            key = (t.i, float(x), float(y))
+            if key not in linked:
+                linked[key] = n + len(fresh)
+                fresh.append(q)
+            ids[q] = linked[key]
+        fresh = np.asarray(fresh, dtype=np.int64)
+        if fresh.size:
+            ex, ny = approx[t.i](t.a[fresh, 0], t.a[fresh, 1])
+            ground.append(np.column_stack([ex, ny, np.zeros(fresh.size)]))
+            gweight.append(np.broadcast_to(np.diag([0.0, 0.0, wz_tie]), (fresh.size, 3, 3)))
+            ofr.append(np.full(fresh.size, t.i))
+            opt.append(ids[fresh])
+            oxy.append(t.a[fresh])
+            osig.append(t.sigma[fresh])
+            n += fresh.size
+        ofr.append(np.full(m, t.j))
+        opt.append(ids)
+        oxy.append(t.b)
+        osig.append(t.sigma)
     g = np.concatenate(ground) if ground else np.zeros((0, 3))
     sig = np.maximum(np.concatenate(osig), min_sigma) if osig else np.zeros(0)
     return Problem(

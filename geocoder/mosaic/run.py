@@ -56,6 +56,7 @@ class MosaicSummary:
     sigma0: float = float("nan")
     iterations: int = 0
     rms_px: list[float] = field(default_factory=list)
+    rays: dict = field(default_factory=dict)
     seam_step: list[float] = field(default_factory=list)
     shape: tuple[int, int] = (0, 0)
     seconds: dict = field(default_factory=dict)
@@ -66,6 +67,7 @@ class MosaicSummary:
             f"scenes: {len(self.scenes)} ({kept} in the block); control points per scene {self.control_points}",
             f"overlapping pairs: {len(self.pairs)}, tie points " + ", ".join(f"{p['i']}-{p['j']}: {p['ties']}" for p in self.pairs),
             *(f"left out: {self.scenes[int(k)]}: {why}" for k, why in self.left_out.items()),
+            "ground points by rays: " + ", ".join(f"{k}: {v}" for k, v in self.rays.items()),
             f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
             + ", ".join(f"{r:.3f}" for r in self.rms_px),
             *([f"radiometric balance: grey-value step at the tie points {self.seam_step[0]:.3g} before, "
@@ -255,6 +257,8 @@ def mosaic(
                 )
                 result = job.cached("adjustment", lambda: solve(problem))
             summary.sigma0, summary.iterations = float(result.sigma0), int(result.iterations)
+            rays = np.bincount(np.bincount(problem.obs_point))
+            summary.rays = {str(k): int(v) for k, v in enumerate(rays) if v and k}
             summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
                               for n in range(len(block))]
             models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
