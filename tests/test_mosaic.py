@@ -1,8 +1,9 @@
 """Mosaic of a 2 x 2 block: scenes found on a reference, block adjustment, one seamless grid.
 
 Truth: every scene is the reference orthoimage seen through a known mapping ``T_k`` (scene
-pixel -> ortho pixel: rotation, scale, a quadratic term, new noise and gain), so the error of
-an output pixel taken from scene ``k`` is ``|T_k(model_k(p)) - p|`` in output pixels.
+pixel -> ortho pixel: rotation, scale, a quadratic term, new noise and gain;
+:mod:`geocoder.simulate.block`), so the error of an output pixel taken from scene ``k`` is
+``|T_k(model_k(p)) - p|`` in output pixels (:func:`geocoder.quality.accuracy.mosaic_errors`).
 """
 
 from __future__ import annotations
@@ -13,32 +14,22 @@ import numpy as np
 import pytest
 from affine import Affine
 
-from geocoder.kernels.resample import sample
-from geocoder.mosaic import load_models, mosaic
+from geocoder.mosaic import mosaic
+from geocoder.quality.accuracy import mosaic_errors
 from geocoder.scene import write_geotiff, world_to_pixel
+from geocoder.simulate.block import BlockScene, render
 from geocoder.simulate.texture import synthetic_ortho
 
 pytestmark = pytest.mark.cluster
 
 ORTHO = Affine(2.0, 0.0, 500000.0, 0.0, -2.0, 5800000.0)
 SIZE = 320
-ORIGINS = [(96, 96), (96, 288), (288, 96), (288, 288)]  # (row, col) in the ortho: 40 % overlap
-
-
-def truth(k: int):
-    """``T_k``: scene pixel -> ortho pixel."""
-    r0, c0 = ORIGINS[k]
-    angle = np.deg2rad([2.0, -3.0, 1.5, -1.0][k])
-    scale = [1.0, 1.02, 0.98, 1.01][k]
-    q = [1.5, -2.0, 1.0, 2.5][k] / (SIZE / 2) ** 2
-
-    def t(x, y):
-        u, v = x - SIZE / 2, y - SIZE / 2
-        ox = c0 + SIZE / 2 + scale * (np.cos(angle) * u - np.sin(angle) * v) + q * u * v
-        oy = r0 + SIZE / 2 + scale * (np.sin(angle) * u + np.cos(angle) * v) + q * u * u
-        return ox, oy
-
-    return t
+# a 2 x 2 block, 40 % overlap, each scene rotated, scaled, bent and re-exposed differently
+SCENES = [
+    BlockScene(row0=r0, col0=c0, size=SIZE, angle_deg=a, scale=s, quadratic_px=q, gain=1.1 + 0.05 * k, offset=3.0 * k)
+    for k, ((r0, c0), a, s, q) in enumerate(zip([(96, 96), (96, 288), (288, 96), (288, 288)], [2.0, -3.0, 1.5, -1.0],
+                                                [1.0, 1.02, 0.98, 1.01], [1.5, -2.0, 1.0, 2.5]))
+]
 
 
 @pytest.fixture(scope="module")
@@ -46,44 +37,21 @@ def block(tmp_path_factory):
     d = tmp_path_factory.mktemp("block")
     ortho = np.squeeze(synthetic_ortho((768, 768), seed=21)).astype(np.float32)
     write_geotiff(d / "ortho.tif", ortho, transform=ORTHO, crs="EPSG:32633")
-    rng = np.random.default_rng(3)
     paths = []
-    ys, xs = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
-    for k in range(4):
-        ox, oy = truth(k)(xs, ys)
-        img = sample(ortho, ox, oy, method="cubic")
-        img = (1.1 + 0.05 * k) * img + 3.0 * k + rng.normal(0, 0.01 * np.nanstd(img), img.shape)
+    for k, scene in enumerate(SCENES):
         paths.append(d / f"scene{k}.tif")
-        write_geotiff(paths[-1], img.astype(np.float32))  # no georeference: found on the reference
+        write_geotiff(paths[-1], render(ortho, scene, seed=k))  # no georeference: found on the reference
     # on the reference (georeferenced: a small scene at the reference's edge defeats the blind
     # coarse alignment), overlapping no other scene
     write_geotiff(d / "far.tif", ortho[620:760, 20:180], transform=ORTHO * Affine.translation(20, 620), crs="EPSG:32633")
+    rng = np.random.default_rng(3)
     write_geotiff(d / "noise.tif", rng.normal(100, 20, (200, 200)).astype(np.float32))  # not on the reference
     return d, paths
 
 
 def errors(ds) -> tuple[np.ndarray, np.ndarray]:
-    """Per output pixel: geometric error (output px) of the scene it comes from, and of every pair."""
-    models = load_models(ds)
-    ex, ny = np.meshgrid(ds.x.values, ds.y.values)
-    gx, gy = world_to_pixel(ORTHO, ex, ny)
-    ground = np.column_stack([ex.ravel(), ny.ravel(), np.zeros(ex.size)])
-    scenes = [int(s.rsplit("scene", 1)[1][0]) for s in json.loads(ds.attrs["scenes"])]
-    pos = []
-    for (model, params), k in zip(models, scenes):
-        xy = model.project(params, ground)
-        x, y = xy[:, 0].reshape(ex.shape), xy[:, 1].reshape(ex.shape)
-        inside = (x >= 0) & (x <= SIZE - 1) & (y >= 0) & (y <= SIZE - 1)
-        tx, ty = truth(k)(x, y)
-        pos.append(np.where(inside, tx, np.nan) + 1j * np.where(inside, ty, np.nan))
-    pos = np.array(pos)
-    src = ds.source.values
-    own = np.full(src.shape, np.nan)
-    for n in range(len(models)):
-        m = src == n
-        own[m] = np.abs(pos[n][m] - (gx[m] + 1j * gy[m]))
-    seams = [np.abs(pos[i] - pos[j]) for i in range(len(pos)) for j in range(i + 1, len(pos))]
-    return own, np.concatenate([s[np.isfinite(s)] for s in seams])
+    scenes = [SCENES[int(s.rsplit("scene", 1)[1][0])] for s in json.loads(ds.attrs["scenes"])]
+    return mosaic_errors(ds, [s.to_ortho for s in scenes], [(SIZE, SIZE)] * len(scenes), ORTHO)
 
 
 def test_block_mosaic_against_truth(block, client, tmp_path):
