@@ -33,7 +33,7 @@ from ..errors import GeocoderError, InputError
 from ..geometry import pixel_to_world, world_to_pixel
 from ..kernels.polynomial import fit_polymap
 from ..outputs import check_output, commit_output, product_attrs
-from ..pipeline.job import Job, fingerprint
+from ..pipeline.job import Job, JobRun, fingerprint
 from ..pipeline.register import RegisterOptions, RegisterSummary, _ingest, _Timer, find_tiepoints, job_directory
 from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
@@ -197,109 +197,99 @@ def mosaic(
     key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile,
                       control=sorted(allowed), feather=feather, resampling=resampling, balance=balance)
     job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
-    keep = False
-    try:
-        with progress.reporting(show_progress), dask_client(client, scheduler) as c:
-            with timer("ingest"):
-                ref = _ingest(job, "reference", ref, tile, c)
-                opened = [_ingest(job, f"scene-{k}", s, tile, c) for k, s in enumerate(opened)]
-            ref_reader = WindowReader(job.file("reference.zarr"))
-            readers = [WindowReader(job.file(f"scene-{k}.zarr")) for k in range(len(opened))]
-            shapes = [(s.sizes["y"], s.sizes["x"]) for s in opened]
-            control, ref_to, to_ref = [], {}, {}
-            with timer("control points"):
-                for k, s in enumerate(opened):
+    with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
+            dask_client(client, scheduler) as c:
+        run.connected = c.scheduler.address
+        with timer("ingest"):
+            ref = _ingest(job, "reference", ref, tile, c)
+            opened = [_ingest(job, f"scene-{k}", s, tile, c) for k, s in enumerate(opened)]
+        ref_reader = WindowReader(job.file("reference.zarr"))
+        readers = [WindowReader(job.file(f"scene-{k}.zarr")) for k in range(len(opened))]
+        shapes = [(s.sizes["y"], s.sizes["x"]) for s in opened]
+        control, ref_to, to_ref = [], {}, {}
+        with timer("control points"):
+            for k, s in enumerate(opened):
+                try:
+                    tp, mapping, _ = _match(job, f"ref-{k}", key, ref, s, ref_reader, readers[k], opts)
+                except GeocoderError as exc:
+                    summary.left_out[str(k)] = f"not found on the reference ({exc})"
+                    continue
+                tp = tp.select(tp.inlier)
+                ref_to[k] = mapping
+                to_ref[k] = fit_polymap(tp.dist_x, tp.dist_y, tp.base_x, tp.base_y, order=order)
+                if k in allowed:
+                    ex, ny = pixel_to_world(transform, tp.base_x, tp.base_y)
+                    control.append(Matches(-1, k, np.column_stack([ex, ny]), np.column_stack([tp.dist_x, tp.dist_y]),
+                                           np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+        summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
+        ties = []
+        with timer("tie points"):
+            found = sorted(ref_to)
+            for a, i in enumerate(found):
+                for j in found[a + 1:]:
+                    if _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j]) < 0.05:
+                        continue
                     try:
-                        tp, mapping, _ = _match(job, f"ref-{k}", key, ref, s, ref_reader, readers[k], opts)
+                        prior = _affine_between(to_ref[i], ref_to[j], shapes[i])
+                        tp, _, _ = _match(job, f"pair-{i}-{j}", key, opened[i], opened[j], readers[i], readers[j], opts,
+                                          prior=prior)
                     except GeocoderError as exc:
-                        summary.left_out[str(k)] = f"not found on the reference ({exc})"
+                        summary.pairs.append({"i": i, "j": j, "ties": 0, "problem": str(exc)})
                         continue
                     tp = tp.select(tp.inlier)
-                    ref_to[k] = mapping
-                    to_ref[k] = fit_polymap(tp.dist_x, tp.dist_y, tp.base_x, tp.base_y, order=order)
-                    if k in allowed:
-                        ex, ny = pixel_to_world(transform, tp.base_x, tp.base_y)
-                        control.append(Matches(-1, k, np.column_stack([ex, ny]), np.column_stack([tp.dist_x, tp.dist_y]),
-                                               np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
-            summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
-            ties = []
-            with timer("tie points"):
-                found = sorted(ref_to)
-                for a, i in enumerate(found):
-                    for j in found[a + 1:]:
-                        if _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j]) < 0.05:
-                            continue
-                        try:
-                            prior = _affine_between(to_ref[i], ref_to[j], shapes[i])
-                            tp, _, _ = _match(job, f"pair-{i}-{j}", key, opened[i], opened[j], readers[i], readers[j], opts,
-                                              prior=prior)
-                        except GeocoderError as exc:
-                            summary.pairs.append({"i": i, "j": j, "ties": 0, "problem": str(exc)})
-                            continue
-                        tp = tp.select(tp.inlier)
-                        ties.append(Matches(i, j, np.column_stack([tp.base_x, tp.base_y]), np.column_stack([tp.dist_x, tp.dist_y]),
-                                            np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
-                        summary.pairs.append({"i": i, "j": j, "ties": len(tp)})
-            ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
-            for k in range(len(opened)):
-                if not ok[k] and str(k) not in summary.left_out:
-                    summary.left_out[str(k)] = "tied to no control point (no overlap with a controlled scene)"
-            block = [k for k in range(len(opened)) if ok[k]]
-            if not block:
-                raise InputError(reference, "no scene could be placed on the reference")
-            index = {k: n for n, k in enumerate(block)}
-            with timer("block adjustment"):
-                problem = build_problem(
-                    [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
+                    ties.append(Matches(i, j, np.column_stack([tp.base_x, tp.base_y]), np.column_stack([tp.dist_x, tp.dist_y]),
+                                        np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+                    summary.pairs.append({"i": i, "j": j, "ties": len(tp)})
+        ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
+        for k in range(len(opened)):
+            if not ok[k] and str(k) not in summary.left_out:
+                summary.left_out[str(k)] = "tied to no control point (no overlap with a controlled scene)"
+        block = [k for k in range(len(opened)) if ok[k]]
+        if not block:
+            raise InputError(reference, "no scene could be placed on the reference")
+        index = {k: n for n, k in enumerate(block)}
+        with timer("block adjustment"):
+            problem = build_problem(
+                [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
+                [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
+                [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
+                order=order,
+            )
+            result = job.cached("adjustment", lambda: solve(problem))
+        summary.sigma0, summary.iterations = float(result.sigma0), int(result.iterations)
+        rays = np.bincount(np.bincount(problem.obs_point))
+        summary.rays = {str(k): int(v) for k, v in enumerate(rays) if v and k}
+        summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
+                          for n in range(len(block))]
+        models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
+        nbands = opened[0].sizes["band"]
+        gains = np.tile([1.0, 0.0], (len(block), nbands, 1))
+        if balance:
+            with timer("radiometric balance"):
+                gains, summary.seam_step = _balance(
+                    [readers[k] for k in block], ref_reader, transform, tile,
                     [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
                     [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
-                    order=order,
-                )
-                result = job.cached("adjustment", lambda: solve(problem))
-            summary.sigma0, summary.iterations = float(result.sigma0), int(result.iterations)
-            rays = np.bincount(np.bincount(problem.obs_point))
-            summary.rays = {str(k): int(v) for k, v in enumerate(rays) if v and k}
-            summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
-                              for n in range(len(block))]
-            models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
-            nbands = opened[0].sizes["band"]
-            gains = np.tile([1.0, 0.0], (len(block), nbands, 1))
-            if balance:
-                with timer("radiometric balance"):
-                    gains, summary.seam_step = _balance(
-                        [readers[k] for k in block], ref_reader, transform, tile,
-                        [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
-                        [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
-                        nbands)
-            ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], tile, opened[0].sizes["band"])
-            summary.shape = (ds.sizes["y"], ds.sizes["x"])
-            ds.attrs.update(_attrs(summary, block, models, order, gains))
-            with timer("mosaic"):
-                store = job.file("output.zarr")
-                if not job.done("output-created"):
-                    ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
-                    job.save("output-created")
-                tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
-                    store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
-                    [shapes[k] for k in block], feather, resampling, gains) for t in grid}
-                job.run_tiles("mosaic", tasks, phase="mosaic tiles")
-            import zarr
+                    nbands)
+        ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], tile, opened[0].sizes["band"])
+        summary.shape = (ds.sizes["y"], ds.sizes["x"])
+        ds.attrs.update(_attrs(summary, block, models, order, gains))
+        with timer("mosaic"):
+            store = job.file("output.zarr")
+            if not job.done("output-created"):
+                ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
+                job.save("output-created")
+            tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
+                store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
+                [shapes[k] for k in block], feather, resampling, gains) for t in grid}
+            job.run_tiles("mosaic", tasks, phase="mosaic tiles")
+        import zarr
 
-            zarr.open_group(store, mode="r+").attrs.update(_attrs(summary, block, models, order, gains))
-            if out is None:
-                result_ds = xr.open_zarr(store, decode_coords="all", consolidated=False).load()
-                return result_ds
-            commit_output(store, out, overwrite=overwrite)
-    except GeocoderError:
-        raise
-    except BaseException:
-        keep = True  # interrupted or crashed: a rerun resumes
-        raise
-    finally:
-        if keep and out is not None:
-            job.release()
-        else:
-            job.remove()
+        zarr.open_group(store, mode="r+").attrs.update(_attrs(summary, block, models, order, gains))
+        if out is None:
+            result_ds = xr.open_zarr(store, decode_coords="all", consolidated=False).load()
+            return result_ds
+        commit_output(store, out, overwrite=overwrite)
     return xr.open_zarr(out, decode_coords="all", consolidated=False)
 
 

@@ -21,8 +21,9 @@ import time
 from typing import Any, Callable
 
 from .. import progress, storage
+from ..errors import EnvironmentFailure, GeocoderError, OutputError, as_environment_failure
 from ..outputs import LOCK_FILE, OutputLock
-from ..runtime import compute_as_completed
+from ..runtime import compute_as_completed, is_cluster_failure
 
 MANIFEST = "manifest.json"
 
@@ -191,6 +192,47 @@ class Job:
         """Delete the working directory (after the job's output is committed), lock included."""
         storage.remove(self.path)
         self.lock.held = False
+
+
+class JobRun:
+    """What is left of a job's directory when the job ends, by how it ends.
+
+    Done, or failed on its input (a rerun would fail the same way): removed. Interrupted,
+    crashed, disk full, scheduler lost, output taken meanwhile: kept, unlocked, for a rerun to
+    resume (only if ``resumable``). Failed before reaching a scheduler (``connected`` unset):
+    kept only if an earlier run left work in it. Disk full and a lost cluster are raised as
+    :class:`~geocoder.errors.EnvironmentFailure` naming the file or the scheduler.
+
+    Set ``connected`` to the scheduler's address once connected.
+    """
+
+    def __init__(self, job: Job, *, resumable: bool) -> None:
+        self.job = job
+        self.resumable = resumable
+        self.connected: str | None = None
+
+    def __enter__(self) -> JobRun:
+        return self
+
+    def __exit__(self, kind, exc, tb) -> None:
+        failure = None
+        if exc is None:
+            keep = False
+        else:
+            failure = as_environment_failure(exc, self.job.path)
+            if failure is None and self.connected and is_cluster_failure(exc):
+                failure = EnvironmentFailure(self.connected, "lost the Dask scheduler or its workers mid-job "
+                                             f"({type(exc).__name__}); run the same command again to resume")
+            if self.connected is None:
+                keep = self.job.resumed
+            else:
+                keep = isinstance(failure or exc, (EnvironmentFailure, OutputError)) or not isinstance(exc, GeocoderError)
+        if keep and self.resumable:
+            self.job.release()
+        else:
+            self.job.remove()
+        if failure is not None:
+            raise failure from exc
 
 
 def _compute(tasks: dict[str, Any], phase: str, *, total: int, skipped: int = 0,

@@ -21,7 +21,7 @@ import numpy as np
 import xarray as xr
 
 from .. import progress, storage
-from ..errors import EnvironmentFailure, GeocoderError, InputError, MatchingError, OutputError, as_environment_failure
+from ..errors import InputError, MatchingError
 from ..outputs import check_output, commit_output, product_attrs
 from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
@@ -29,7 +29,7 @@ from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
 from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
-from ..runtime import dask_client, is_cluster_failure
+from ..runtime import dask_client
 from ..scene import WindowReader, ingest, open_scene
 from ..status import Status, legend
 from ..tiles import TileGrid
@@ -37,7 +37,7 @@ from .coarse import coarse_alignment
 from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points
-from .job import Job, fingerprint
+from .job import Job, JobRun, fingerprint
 from .resample import model_status, polynomial_displacement, resample
 
 log = logging.getLogger("geocoder")
@@ -305,44 +305,23 @@ def register(
     job = _open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     if job.resumed:
         log.info("resuming the job in %s", job.path)
-    keep = False  # whether the job directory stays for a rerun to resume
-    connected = None  # the scheduler's address once connected
-    try:
-        with progress.reporting(show_progress), dask_client(client, scheduler) as c:
-            connected = c.scheduler.address
-            progress.current().message(f"Dask dashboard: {c.dashboard_link}")
-            ds, counts, tp = _run(job, bscene, dscene, opts, summary, timer, c, in_memory=out is None)
-            summary.status_counts = {Status(i).name.lower(): int(n) for i, n in enumerate(counts) if n}
-            summary.job = job.report()
-            ds.attrs["summary"] = json.dumps(asdict(summary))
-            if out is None:
-                ds.attrs["tiepoints"] = _tiepoint_dataset(tp)
-                return ds
-            store = job.file("output.zarr")
-            _tiepoint_dataset(tp).to_zarr(store, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
-            import zarr
+    with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
+            dask_client(client, scheduler) as c:
+        run.connected = c.scheduler.address
+        progress.current().message(f"Dask dashboard: {c.dashboard_link}")
+        ds, counts, tp = _run(job, bscene, dscene, opts, summary, timer, c, in_memory=out is None)
+        summary.status_counts = {Status(i).name.lower(): int(n) for i, n in enumerate(counts) if n}
+        summary.job = job.report()
+        ds.attrs["summary"] = json.dumps(asdict(summary))
+        if out is None:
+            ds.attrs["tiepoints"] = _tiepoint_dataset(tp)
+            return ds
+        store = job.file("output.zarr")
+        _tiepoint_dataset(tp).to_zarr(store, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
+        import zarr
 
-            zarr.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
-            commit_output(store, out, overwrite=overwrite)
-    except BaseException as exc:
-        failure = as_environment_failure(exc, job.path)
-        if failure is None and connected and is_cluster_failure(exc):
-            failure = EnvironmentFailure(connected, "lost the Dask scheduler or its workers mid-job "
-                                         f"({type(exc).__name__}); run the same command again to resume")
-        if connected is None:
-            keep = job.resumed  # no scheduler, nothing done: keep only an earlier run's work
-        else:
-            # bad input or no match: a rerun would fail the same way, keep nothing; interrupted,
-            # crashed, disk full, scheduler lost, output taken meanwhile: a rerun resumes
-            keep = isinstance(failure or exc, (EnvironmentFailure, OutputError)) or not isinstance(exc, GeocoderError)
-        if failure is not None:
-            raise failure from exc
-        raise
-    finally:
-        if keep and out is not None:
-            job.release()
-        else:
-            job.remove()
+        zarr.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
+        commit_output(store, out, overwrite=overwrite)
     return xr.open_zarr(out, decode_coords="all", consolidated=False)
 
 
