@@ -322,3 +322,34 @@ def test_options_are_honoured(work, client):
     # a keyword given explicitly still wins
     ds = register(work / "base.tif", work / "dist.tif", client=client, order=1, options=RegisterOptions(order=3, dense=False, tile=128))
     assert json.loads(ds.attrs["mapping"])["order"] == 1
+
+
+def test_scheduler_lost_mid_job_keeps_the_job(tmp_path):
+    """The scheduler of a 'cluster up' cluster killed mid dense matching: exit 3, one line, job kept."""
+    src = synthetic_ortho((864, 864), seed=9)
+    pair = make_pair(src, shape=(768, 768), seed=9, margin=48)
+    write_geotiff(tmp_path / "b.tif", pair.base)
+    write_geotiff(tmp_path / "d.tif", pair.distorted)
+    up = run("cluster", "up", "--workers", 1, "--dir", tmp_path / "cl", cwd=tmp_path, timeout=180)
+    assert up.returncode == 0, up.stderr
+    info = json.loads((tmp_path / "cl" / "cluster.json").read_text())
+    try:
+        p = subprocess.Popen([*GEOCODER, "register", "b.tif", "d.tif", "--out", "o.zarr", "--tile", "128", "--scheduler",
+                              str(tmp_path / "cl" / "cluster.json")], cwd=tmp_path, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+        manifest = tmp_path / ".o.zarr.geocoder-job" / "manifest.json"
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and p.poll() is None:
+            if manifest.exists() and "correspondence" in manifest.read_text():
+                break
+            time.sleep(0.2)
+        assert p.poll() is None, p.communicate()
+        os.kill(info["scheduler_pid"], signal.SIGKILL)
+        _, err = p.communicate(timeout=180)
+    finally:
+        down = run("cluster", "down", "--dir", tmp_path / "cl", cwd=tmp_path, timeout=180)
+    r = subprocess.CompletedProcess(p.args, p.returncode, "", err)
+    assert_error(r, 3, info["address"], "lost the Dask scheduler", "run the same command again")
+    assert (tmp_path / ".o.zarr.geocoder-job" / "manifest.json").exists()
+    assert not (tmp_path / ".o.zarr.geocoder-job" / "lock.json").exists() and not (tmp_path / "o.zarr").exists()
+    assert down.returncode == 0 and "had already stopped" in down.stdout
