@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -29,6 +30,8 @@ from distributed import Client, LocalCluster
 from geocoder import Status, register
 from geocoder.kernels.polynomial import PolyMap
 from geocoder.kernels.resample import sample
+from geocoder.pipeline.dense import DenseOptions
+from geocoder.pipeline.register import RegisterOptions
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import make_pair
@@ -37,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "benchmarks")]
 SHARED = ROOT.parent / "shared" / "data"
 
-from bench_register import PeakWorkerMemory  # noqa: E402
+from bench_cluster import WorkerPeak  # noqa: E402
 from test_dense import textured_overlap  # noqa: E402
 
 
@@ -57,29 +60,32 @@ def rmse(dx, dy, pair, mask):
     return float(np.sqrt(e2[ok].mean())), float(ok.sum() / mask.sum())
 
 
-def speed(size: int, work: Path) -> None:
+def speed(size: int, work: Path, col_steps: tuple[int, ...] = (1,)) -> None:
     b, d, pair = synthetic_case(size, work / "speed")
     wb, wd, _ = synthetic_case(256, work / "warm")
     rows = []
     for workers in (1, 2):
         with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, Client(cl) as c:
-            register(wb, wd, tile=128, client=c)  # warm-up: numba compiles (or loads) in the workers
-            t0 = time.perf_counter()
-            with PeakWorkerMemory(c) as mem:
-                ds = register(b, d, tile=512, client=c, out=work / f"speed{workers}.zarr")
-            total = time.perf_counter() - t0
-            s = json.loads(ds.attrs["summary"])
-            st = ds.status.values
-            matched = int((st == Status.MATCHED).sum())
-            m = st == Status.MATCHED
-            err = np.hypot(ds.dx.values - pair.dx, ds.dy.values - pair.dy)[m]
-            rows.append((workers, matched / s["seconds"]["dense matching"], s["seconds"]["dense matching"], total,
-                         matched / st.size, float(np.sqrt((err**2).mean())), s["dense_rounds"], mem.peak))
+            for col_step in col_steps:
+                options = RegisterOptions(matching=DenseOptions(col_step=col_step))
+                register(wb, wd, tile=128, client=c, options=options)  # warm-up: numba compiles (or loads) in the workers
+                t0 = time.perf_counter()
+                with WorkerPeak(list(c.run(os.getpid).values())) as mem:
+                    ds = register(b, d, tile=512, client=c, out=work / f"speed{workers}-{col_step}.zarr", options=options)
+                total = time.perf_counter() - t0
+                s = json.loads(ds.attrs["summary"])
+                st = ds.status.values
+                matched = int((st == Status.MATCHED).sum())
+                m = st == Status.MATCHED
+                err = np.hypot(ds.dx.values - pair.dx, ds.dy.values - pair.dy)[m]
+                rows.append((workers, col_step, matched / s["seconds"]["dense matching"], s["seconds"]["dense matching"], total,
+                             matched / st.size, float(np.sqrt((err**2).mean())), float((err > 1).mean()), s["dense_rounds"],
+                             max(mem.peak.values())))
     print(f"\nDense speed: {size} x {size} pair, tile 512, template 51 x 7, local worker processes (1 thread each)")
-    print("| workers | matched px/s | dense stage s | end-to-end s | matched | RMSE px | rounds | peak worker MiB |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| workers | col_step | matched px/s | dense stage s | end-to-end s | matched | RMSE px | > 1 px | rounds | peak worker MiB |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print("| {} | {:.0f} | {:.1f} | {:.1f} | {:.1%} | {:.4f} | {} | {:.0f} |".format(*r))
+        print("| {} | {} | {:.0f} | {:.1f} | {:.1f} | {:.1%} | {:.4f} | {:.2%} | {} | {:.0f} |".format(*r))
 
 
 def _prewarp(pair, mapping: PolyMap):
@@ -181,10 +187,11 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=2048)
     ap.add_argument("--skip-speed", action="store_true")
     ap.add_argument("--skip-compare", action="store_true")
+    ap.add_argument("--col-steps", default="1", help="comma-separated DenseOptions.col_step values for the speed table")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
         if not args.skip_speed:
-            speed(args.size, Path(d))
+            speed(args.size, Path(d), tuple(int(v) for v in args.col_steps.split(",")))
         if not args.skip_compare:
             compare(Path(d), args.size)
 

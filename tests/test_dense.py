@@ -103,3 +103,29 @@ def test_dense_does_not_depend_on_tiling(shared_data, tmp_path, client):
         print(t, same, delta.max(), np.percentile(delta, [99, 99.9, 99.99]), (delta > 0.01).sum(), delta.size)
         assert same >= 0.995
         assert delta.max() <= 0.01
+
+
+def test_dense_lattice_fill_against_truth(shared_data, tmp_path, client):
+    """Opt-in lattice growth (every 4th column) plus the fill between: as accurate as full matching."""
+    from geocoder.pipeline.dense import DenseOptions
+    from geocoder.pipeline.register import RegisterOptions
+
+    files = real_pair(shared_data, tmp_path, which="aerial", size=512, seed=21, turbulence=(1.0, 3.0))
+    full = dense_figures(register(files.base, files.distorted, tile=256, client=client), files.pair)
+    options = RegisterOptions(matching=DenseOptions(col_step=4))
+    ds = register(files.base, files.distorted, tile=256, client=client, options=options)
+    f = dense_figures(ds, files.pair)
+    print("full", full, "lattice+fill", f, json.loads(ds.attrs["summary"])["status_counts"])
+    assert f["rmse"] <= 0.1
+    assert f["rmse"] <= full["rmse"] + 0.005
+    assert f["coverage"] >= 0.95
+    assert f["coverage"] >= full["coverage"] - 0.002
+    assert f["unflagged_over_1px"] == 0
+    assert 0.67 <= f["calib_x"] <= 1.5 and 0.67 <= f["calib_y"] <= 1.5
+    # the tiles' fill passes read their neighbours' lattice columns: the same with one tile
+    one = register(files.base, files.distorted, tile=512, client=client, options=options)
+    both = (one.status.values == Status.MATCHED) & (ds.status.values == Status.MATCHED)
+    assert (one.status.values == ds.status.values).mean() >= 0.995
+    delta = np.hypot(one.dx.values - ds.dx.values, one.dy.values - ds.dy.values)[both]
+    print("tiles 512 vs 256:", delta.max(), np.percentile(delta, [99, 99.9]), (delta > 0.01).sum(), delta.size)
+    assert np.percentile(delta, 99.9) <= 0.01

@@ -367,3 +367,136 @@ def test_validation(scene: Scene) -> None:
     assert res.accepted.all() and res.iterations.dtype == np.int32 and res.exit.dtype == np.int8
     empty = alsc(scene.base, scene.dist, np.empty(0, int), np.empty(0, int), np.empty((0, 8)))
     assert empty.x.shape == (0,) and empty.accepted.shape == (0,)
+
+
+# --------------------------------------------------------------------------
+# one verified step (alsc_step) and the fill between lattice columns
+# --------------------------------------------------------------------------
+
+
+def _step_many(base, dist, cols, rows, init, options, step_tol):
+    from geocoder.kernels.alsc import alsc_step
+
+    gx, gy = gradients(dist)
+    out = np.empty((cols.size, len(FIELDS)))
+    codes = np.empty(cols.size, dtype=np.int64)
+    for k in range(cols.size):
+        o = options
+        codes[k] = alsc_step(
+            base, dist, gx, gy, int(cols[k]), int(rows[k]), init[k], out[k], int(o.radius), o.ry,
+            o.interpolation == "cubic", step_tol, float(o.max_shift), float(o.min_rho), float(o.max_sigma),
+            float(o.min_det),
+        )
+    return out, codes
+
+
+@pytest.mark.parametrize("interpolation", ["bilinear", "cubic"])
+@pytest.mark.parametrize("offset,step_tol,expected", [(0.01, 0.05, Exit.ACCEPTED), (0.5, 0.05, Exit.NOT_CONVERGED)])
+def test_step_numba_matches_reference(scene: Scene, interpolation, offset, step_tol, expected) -> None:
+    from geocoder.kernels.alsc import alsc_step_reference
+
+    options = AlscOptions(interpolation=interpolation)
+    idx = np.arange(0, scene.cols.size, scene.cols.size // 6)[:6]
+    cols, rows = scene.cols[idx], scene.rows[idx]
+    truth = scene.truth(cols, rows)
+    init = truth.copy()
+    ang = np.random.default_rng(3).uniform(0, 2 * np.pi, cols.size)
+    init[:, 0] += offset * np.cos(ang)
+    init[:, 1] += offset * np.sin(ang)
+    base = scene.base.astype(np.float32)
+    dist = scene.dist.astype(np.float32)
+    out, codes = _step_many(base, dist, cols, rows, init, options, step_tol)
+    for k in range(cols.size):
+        ref, code = alsc_step_reference(base, dist, int(cols[k]), int(rows[k]), init[k], step_tol=step_tol, options=options)
+        assert codes[k] == code == expected
+        np.testing.assert_allclose(out[k], ref, rtol=1e-6, atol=1e-6, equal_nan=True)
+        assert out[k, 11] == 1.0 and np.isfinite(out[k, 8:11]).all()
+    if expected == Exit.ACCEPTED:
+        # the step moves most of the way to the converged match (noise-free scene)
+        full = alsc(base, dist, cols, rows, init, options=AlscOptions(interpolation=interpolation, tol=1e-6, max_iter=50))
+        assert full.accepted.all()
+        before = np.hypot(init[:, 0] - full.x, init[:, 1] - full.y)
+        after = np.hypot(out[:, 0] - full.x, out[:, 1] - full.y)
+        assert (after <= 0.5 * before).all()
+
+
+def test_step_outside_and_nodata(scene: Scene) -> None:
+    from geocoder.kernels.alsc import alsc_step_reference
+
+    base = scene.base.astype(np.float32)
+    dist = scene.dist.astype(np.float32)
+    base[100, 203] = np.nan
+    cols = np.array([5, 205, 40])
+    rows = np.array([60, 100, 40])
+    init = scene.truth(cols, rows)
+    init[2, :2] = (3.0, 40.0)  # the patch leaves dist
+    out, codes = _step_many(base, dist, cols, rows, init, AlscOptions(), 0.05)
+    for k in range(cols.size):
+        ref, code = alsc_step_reference(base, dist, int(cols[k]), int(rows[k]), init[k], step_tol=0.05)
+        assert codes[k] == code == Exit.OUTSIDE
+        np.testing.assert_allclose(out[k], ref, rtol=1e-6, atol=1e-6, equal_nan=True)
+
+
+def _lattice_state(scene: Scene, k: int, options: AlscOptions):
+    """Window state with converged matches on every k-th column of a block of rows."""
+    base = scene.base.astype(np.float32)
+    dist = scene.dist.astype(np.float32)
+    h, w = base.shape
+    params = np.full((h, w, len(FIELDS)), np.nan)
+    code = np.full((h, w), -1, dtype=np.int8)
+    rr, cc = np.mgrid[150:156, 120 : 200 + 1 : k]
+    rr, cc = rr.ravel(), cc.ravel()
+    res = alsc(base, dist, cc, rr, _start(scene.truth(cc, rr), offset=0.3, seed=4, affine=A_TRUE.ravel()), options=options)
+    assert res.accepted.all()
+    for j, (r, c) in enumerate(zip(rr, cc)):
+        params[r, c] = _fields(res, j)
+        code[r, c] = 0
+    return base, dist, params, code
+
+
+def test_fill_matches_reference_and_truth(scene: Scene) -> None:
+    from geocoder.match.fill import fill_reference, fill_window
+
+    options = AlscOptions(radius=7)
+    k = 4
+    base, dist, params, code = _lattice_state(scene, k, options)
+    code[152, 160] = Exit.LOW_CORRELATION  # a failed lattice pixel: its neighbours match from one side
+    params[152, 160] = np.nan
+    region = (150, 156, 121, 200)
+    p_ref, c_ref = fill_reference(base, dist, params, code, region, options=options, col_step=k, step_tol=0.05)
+    p_new, c_new = params.copy(), code.copy()
+    new = fill_window(base, dist, gradients(dist), p_new, c_new, region, options=options, col_step=k, step_tol=0.05)
+    np.testing.assert_array_equal(c_new, c_ref)
+    np.testing.assert_allclose(p_new, p_ref, rtol=1e-6, atol=1e-6, equal_nan=True)
+    filled = (c_new == 0) & (code != 0)
+    assert new == filled.sum() == 6 * sum(c % k != 0 for c in range(121, 200))  # every pixel between lattice columns
+    # against the known warp (noise-free): the filled pixels are as accurate as full matches
+    rr, cc = np.nonzero(filled)
+    truth = scene.truth(cc, rr)
+    err = np.hypot(p_new[rr, cc, 0] - truth[:, 0], p_new[rr, cc, 1] - truth[:, 1])
+    assert err.max() < 0.05  # the bound of full matches on this scene (test_noise_free_accuracy)
+    full = alsc(base, dist, cc, rr, truth + np.array([0.2, -0.1, 0, 0, 0, 0, 0, 0]), options=options)
+    err_full = np.hypot(full.x - truth[:, 0], full.y - truth[:, 1])
+    assert np.sqrt(np.mean(err**2)) <= np.sqrt(np.mean(err_full**2)) + 1e-3
+    # sigma from the full normal matrix, as a full match's (evaluated before the step: here,
+    # noise-free, the residuals are the interpolation error, a few per cent larger there)
+    np.testing.assert_allclose(p_new[rr, cc, 8], full.sigma_x, rtol=0.1)
+    np.testing.assert_allclose(p_new[rr, cc, 9], full.sigma_y, rtol=0.1)
+
+
+def test_fill_does_not_depend_on_the_split(scene: Scene) -> None:
+    from geocoder.match.fill import fill_window
+
+    options = AlscOptions(radius=7)
+    k = 4
+    base, dist, params, code = _lattice_state(scene, k, options)
+    grad = gradients(dist)
+    whole_p, whole_c = params.copy(), code.copy()
+    fill_window(base, dist, grad, whole_p, whole_c, (150, 156, 121, 200), options=options, col_step=k)
+    # two parts (as two tiles would), in either order: the same result
+    for parts in (((121, 163), (163, 200)), ((163, 200), (121, 163))):
+        p, c = params.copy(), code.copy()
+        for c0, c1 in parts:
+            fill_window(base, dist, grad, p, c, (150, 156, c0, c1), options=options, col_step=k)
+        np.testing.assert_array_equal(c, whole_c)
+        np.testing.assert_array_equal(p, whole_p)

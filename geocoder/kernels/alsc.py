@@ -18,8 +18,9 @@ with the design rows ::
 
 and adds the solution ``s_k`` to the parameters, relaxed as ``omega_k s_k`` (see below).  The
 iteration has converged when the Gauss-Newton step of ``(x, y)`` is shorter than ``tol``; the
-normal equations, residuals ``e`` and resampled patch are then evaluated once more at the
-final parameters for the statistics: ``sigma0^2 = e.e / (n - 8)``, the covariance
+statistics are those of the normal equations, residuals ``e`` and resampled patch of the
+evaluation that gave this last step (at parameters less than ``tol`` from the final ones; no
+extra evaluation, which saved a fifth of the work): ``sigma0^2 = e.e / (n - 8)``, the covariance
 ``C = sigma0^2 N^-1`` (the shift block of the full inverse, not the inverse of the shift
 block), ``sigma_x, sigma_y`` from its diagonal, and ``rho``, the correlation coefficient of
 the template and the resampled distorted patch.
@@ -42,7 +43,7 @@ holds a non-finite value, ends the match with :attr:`Exit.OUTSIDE`.
 
 Exit codes are decided in the order of :class:`Exit`: ``OUTSIDE`` (at any iteration),
 ``SINGULAR`` (the normal matrix is not numerically positive definite or not finite, at any
-iteration or at the final parameters), ``NOT_CONVERGED``, ``MOVED`` (the final ``(x, y)`` is
+iteration or at the last evaluation), ``NOT_CONVERGED``, ``MOVED`` (the final ``(x, y)`` is
 farther than ``max_shift`` from the start), ``DEGENERATE`` (``det([[a11, a12], [a21, a22]])``
 divided by the determinant of the start affine is outside ``[min_det, 1 / min_det]``, or
 ``gain <= 0``), ``LOW_CORRELATION`` (``rho < min_rho``) and ``IMPRECISE`` (the largest
@@ -81,6 +82,8 @@ __all__ = [
     "alsc",
     "alsc_point",
     "alsc_reference",
+    "alsc_step",
+    "alsc_step_reference",
     "gradients",
 ]
 
@@ -147,6 +150,141 @@ _PAIR = ((0, 1, 2), (1, 3, 4), (2, 4, 5))
 # --------------------------------------------------------------------------
 
 
+# Bilinear moments, branch-free inner loop: the bounds and finiteness tests are folded into
+# flags checked once per template row, indices are clamped so every load stays inside the
+# window, and the sums may be reassociated (no other fast-math flag: NaN and infinity keep
+# their IEEE meaning), so LLVM vectorises the loop over the template row. The summation
+# order is fixed at compile time: results are deterministic and do not depend on the tile.
+@numba.njit(nogil=True, cache=True, fastmath={"contract", "reassoc"})
+def _moments_bilinear(base, dist, grad_x, grad_y, col, row, p, rx, ry, tmean, mom):  # pragma: no cover - compiled
+    """Bilinear case of :func:`_moments` (same contract)."""
+    height, width = dist.shape
+    xmax = width - 1.0
+    ymax = height - 1.0
+    cmax = width - 2
+    rmax = height - 2
+    x, y = p[0], p[1]
+    a11, a12, a21, a22 = p[2], p[3], p[4], p[5]
+    offset, gain = p[6], p[7]
+    for k in range(_NMOM):
+        mom[k] = 0.0
+    for v in range(-ry, ry + 1):
+        fv = float(v)
+        x0 = x + a12 * fv
+        y0 = y + a22 * fv
+        sxx0 = sxx1 = sxx2 = 0.0
+        sxy0 = sxy1 = sxy2 = 0.0
+        syy0 = syy1 = syy2 = 0.0
+        sx0 = sx1 = sy0 = sy1 = 0.0
+        sgx0 = sgx1 = sgy0 = sgy1 = 0.0
+        sex0 = sex1 = sey0 = sey1 = 0.0
+        sg = sgg = se = seg = see = stg = 0.0
+        chk = 0.0
+        outside = 0
+        tr = row + v
+        for u in range(-rx, rx + 1):
+            fu = float(u)
+            px = x0 + a11 * fu
+            py = y0 + a21 * fu
+            # False for NaN as well, so non-finite positions are rejected
+            inside = px >= 0.0 and px < xmax and py >= 0.0 and py < ymax
+            outside += 0 if inside else 1
+            c = min(max(int(px) if inside else 0, 0), cmax)
+            r = min(max(int(py) if inside else 0, 0), rmax)
+            fx = px - c
+            fy = py - r
+            w00 = (1.0 - fx) * (1.0 - fy)
+            w01 = fx * (1.0 - fy)
+            w10 = (1.0 - fx) * fy
+            w11 = fx * fy
+            g = w00 * dist[r, c] + w01 * dist[r, c + 1] + w10 * dist[r + 1, c] + w11 * dist[r + 1, c + 1]
+            gx = w00 * grad_x[r, c] + w01 * grad_x[r, c + 1] + w10 * grad_x[r + 1, c] + w11 * grad_x[r + 1, c + 1]
+            gy = w00 * grad_y[r, c] + w01 * grad_y[r, c + 1] + w10 * grad_y[r + 1, c] + w11 * grad_y[r + 1, c + 1]
+            chk += g + gx + gy
+            t = float(base[tr, col + u])
+            e = t - gain * g - offset
+            q = gx * gx
+            sxx0 += q
+            sxx1 += q * fu
+            sxx2 += q * fu * fu
+            q = gx * gy
+            sxy0 += q
+            sxy1 += q * fu
+            sxy2 += q * fu * fu
+            q = gy * gy
+            syy0 += q
+            syy1 += q * fu
+            syy2 += q * fu * fu
+            sx0 += gx
+            sx1 += gx * fu
+            sy0 += gy
+            sy1 += gy * fu
+            q = g * gx
+            sgx0 += q
+            sgx1 += q * fu
+            q = g * gy
+            sgy0 += q
+            sgy1 += q * fu
+            q = e * gx
+            sex0 += q
+            sex1 += q * fu
+            q = e * gy
+            sey0 += q
+            sey1 += q * fu
+            sg += g
+            sgg += g * g
+            se += e
+            seg += e * g
+            see += e * e
+            stg += (t - tmean) * g
+        if outside != 0 or not (chk - chk == 0.0):  # a tap outside the window, or NaN/inf somewhere
+            return False
+        vv = fv * fv
+        mom[0] += sxx0
+        mom[1] += sxx1
+        mom[2] += fv * sxx0
+        mom[3] += sxx2
+        mom[4] += fv * sxx1
+        mom[5] += vv * sxx0
+        mom[6] += sxy0
+        mom[7] += sxy1
+        mom[8] += fv * sxy0
+        mom[9] += sxy2
+        mom[10] += fv * sxy1
+        mom[11] += vv * sxy0
+        mom[12] += syy0
+        mom[13] += syy1
+        mom[14] += fv * syy0
+        mom[15] += syy2
+        mom[16] += fv * syy1
+        mom[17] += vv * syy0
+        mom[18] += sx0
+        mom[19] += sx1
+        mom[20] += fv * sx0
+        mom[21] += sy0
+        mom[22] += sy1
+        mom[23] += fv * sy0
+        mom[24] += sgx0
+        mom[25] += sgx1
+        mom[26] += fv * sgx0
+        mom[27] += sgy0
+        mom[28] += sgy1
+        mom[29] += fv * sgy0
+        mom[30] += sex0
+        mom[31] += sex1
+        mom[32] += fv * sex0
+        mom[33] += sey0
+        mom[34] += sey1
+        mom[35] += fv * sey0
+        mom[_SG] += sg
+        mom[_SGG] += sgg
+        mom[_SE] += se
+        mom[_SEG] += seg
+        mom[_SEE] += see
+        mom[_STG] += stg
+    return True
+
+
 # The only hot loop: fusing its multiply-adds (``contract``; no other fast-math flag, so NaN
 # and infinity keep their IEEE meaning) makes it ~20 % faster.
 @numba.njit(nogil=True, cache=True, fastmath={"contract"})
@@ -156,6 +294,8 @@ def _moments(base, dist, grad_x, grad_y, col, row, p, rx, ry, cubic, tmean, mom)
     Returns False (``mom`` then incomplete) when a sample needs a tap outside the window or
     touches a non-finite value.
     """
+    if not cubic:
+        return _moments_bilinear(base, dist, grad_x, grad_y, col, row, p, rx, ry, tmean, mom)
     height, width = dist.shape
     xmax = width - 1.0
     ymax = height - 1.0
@@ -486,7 +626,6 @@ def alsc_point(
     det0 = p[2] * p[5] - p[3] * p[4]
 
     code = _ACCEPTED
-    converged = False
     updates = 0
     omega = 1.0
     prev_x = 0.0
@@ -496,8 +635,6 @@ def alsc_point(
             code = _OUTSIDE
             break
         _normal_equations(mom, p[7], npix, nmat, rhs)
-        if converged:
-            break
         if updates >= max_iter:
             code = _NOT_CONVERGED
             break
@@ -521,14 +658,14 @@ def alsc_point(
         prev_x = sx
         prev_y = sy
         if math.sqrt(sx * sx + sy * sy) < tol:
-            converged = True
+            break  # converged: the statistics are those of this evaluation
 
     for k in range(NPARAMS):
         out[k] = p[k]
     out[11] = float(updates)
     if code == _OUTSIDE:
         return code
-    # correlation of the template and the resampled patch at the final parameters
+    # correlation of the template and the resampled patch of the last evaluation
     sg = mom[_SG]
     vg = mom[_SGG] - sg * sg / npix
     if stt > 0.0 and vg > 0.0:
@@ -562,6 +699,102 @@ def alsc_point(
     det = p[2] * p[5] - p[3] * p[4]
     ratio = det * det0  # same sign as det / det0
     if not (det0 != 0.0 and ratio >= min_det * det0 * det0 and ratio * min_det <= det0 * det0 and p[7] > 0.0):
+        return _DEGENERATE
+    if not (rho >= min_rho):
+        return _LOW_CORRELATION
+    half = 0.5 * (cxx - cyy)
+    largest = 0.5 * (cxx + cyy) + math.sqrt(half * half + cxy * cxy)
+    if not (largest <= max_sigma * max_sigma):
+        return _IMPRECISE
+    return _ACCEPTED
+
+
+@numba.njit(nogil=True, cache=True)
+def alsc_step(
+    base, dist, grad_x, grad_y, col, row, init, out, radius, radius_y, cubic, step_tol, max_shift, min_rho,
+    max_sigma, min_det,
+):  # pragma: no cover - compiled
+    """One verified Gauss-Newton step from a close start; returns the exit code.
+
+    For a start that is already close to the solution (the interpolation of two converged
+    neighbours on the same scan line): the normal equations are evaluated once, at
+    ``init``; the full step ``s`` is added to the parameters, and ``sigma_x, sigma_y``
+    (from the full 8x8 inverse, ``sigma0^2 N^-1``) and ``rho`` are those of that evaluation.
+    The step counts as converged when its ``(x, y)`` part is shorter than ``step_tol``
+    (otherwise :attr:`Exit.NOT_CONVERGED`, and the caller iterates with :func:`alsc_point`);
+    the other tests and exit codes are those of :func:`alsc_point`, the shift measured from
+    ``init``. Arguments as for :func:`alsc_point` (``step_tol`` replaces ``max_iter`` and ``tol``).
+    """
+    nan = np.nan
+    for k in range(NPARAMS):
+        out[k] = init[k]
+    for k in range(NPARAMS, NFIELDS):
+        out[k] = nan
+    out[11] = 0.0
+    rx = radius
+    ry = radius_y
+    npix = (2 * rx + 1) * (2 * ry + 1)
+    bh, bw = base.shape
+    if col - rx < 0 or col + rx >= bw or row - ry < 0 or row + ry >= bh:
+        return _OUTSIDE
+    st = 0.0
+    for r in range(row - ry, row + ry + 1):
+        for c in range(col - rx, col + rx + 1):
+            t = float(base[r, c])
+            if not (t - t == 0.0):
+                return _OUTSIDE
+            st += t
+    tmean = st / npix
+    stt = 0.0
+    for r in range(row - ry, row + ry + 1):
+        for c in range(col - rx, col + rx + 1):
+            t = float(base[r, c]) - tmean
+            stt += t * t
+    mom = np.empty(_NMOM)
+    nmat = np.empty((NPARAMS, NPARAMS))
+    chol = np.zeros((NPARAMS, NPARAMS))
+    rhs = np.empty(NPARAMS)
+    scale = np.empty(NPARAMS)
+    step = np.empty(NPARAMS)
+    if not _moments(base, dist, grad_x, grad_y, col, row, init, rx, ry, cubic, tmean, mom):
+        return _OUTSIDE
+    _normal_equations(mom, init[7], npix, nmat, rhs)
+    sg = mom[_SG]
+    vg = mom[_SGG] - sg * sg / npix
+    if stt > 0.0 and vg > 0.0:
+        rho = mom[_STG] / math.sqrt(stt * vg)
+    else:
+        rho = nan
+    out[10] = rho
+    if not _factor(nmat, scale, chol):
+        return _SINGULAR
+    _solve(chol, scale, rhs, step)
+    for k in range(NPARAMS):
+        out[k] = init[k] + step[k]
+    out[11] = 1.0
+    s02 = mom[_SEE] / (npix - NPARAMS) if npix > NPARAMS else nan
+    for k in range(NPARAMS):
+        rhs[k] = 0.0
+    rhs[0] = 1.0
+    _solve(chol, scale, rhs, step)
+    cxx = s02 * step[0]
+    cxy = s02 * step[1]
+    rhs[0] = 0.0
+    rhs[1] = 1.0
+    _solve(chol, scale, rhs, step)
+    cyy = s02 * step[1]
+    out[8] = math.sqrt(cxx)
+    out[9] = math.sqrt(cyy)
+    sx = out[0] - init[0]
+    sy = out[1] - init[1]
+    if not (math.sqrt(sx * sx + sy * sy) < step_tol):
+        return _NOT_CONVERGED
+    if math.sqrt(sx * sx + sy * sy) > max_shift:
+        return _MOVED
+    det0 = init[2] * init[5] - init[3] * init[4]
+    det = out[2] * out[5] - out[3] * out[4]
+    ratio = det * det0
+    if not (det0 != 0.0 and ratio >= min_det * det0 * det0 and ratio * min_det <= det0 * det0 and out[7] > 0.0):
         return _DEGENERATE
     if not (rho >= min_rho):
         return _LOW_CORRELATION
@@ -920,7 +1153,6 @@ def alsc_reference(
     x0, y0 = p[0], p[1]
     det0 = p[2] * p[5] - p[3] * p[4]
     code = Exit.ACCEPTED
-    converged = False
     updates = 0
     omega = 1.0
     prev = np.zeros(2)
@@ -931,8 +1163,6 @@ def alsc_reference(
             code = Exit.OUTSIDE
             break
         nmat, rhs, _, _ = state
-        if converged:
-            break
         if updates >= o.max_iter:
             code = Exit.NOT_CONVERGED
             break
@@ -947,7 +1177,8 @@ def alsc_reference(
         p = p + omega * step
         updates += 1
         prev = step[:2].copy()
-        converged = bool(np.hypot(step[0], step[1]) < o.tol)
+        if np.hypot(step[0], step[1]) < o.tol:
+            break  # converged: the statistics are those of this evaluation
 
     out[:NPARAMS] = p
     out[11] = updates
@@ -971,6 +1202,98 @@ def alsc_reference(
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = (p[2] * p[5] - p[3] * p[4]) / det0
     if not (o.min_det <= ratio <= 1.0 / o.min_det and p[7] > 0):
+        return out, Exit.DEGENERATE
+    if not rho >= o.min_rho:
+        return out, Exit.LOW_CORRELATION
+    if not np.linalg.eigvalsh(cov)[-1] <= o.max_sigma**2:
+        return out, Exit.IMPRECISE
+    return out, Exit.ACCEPTED
+
+
+def alsc_step_reference(
+    base: np.ndarray,
+    dist: np.ndarray,
+    col: int,
+    row: int,
+    init: np.ndarray,
+    *,
+    step_tol: float,
+    options: AlscOptions = AlscOptions(),
+) -> tuple[np.ndarray, int]:
+    """Numpy implementation of :func:`alsc_step` for one point (for the tests).
+
+    The design matrix is built explicitly at ``init``; the covariance is taken from the
+    full inverse of the normal matrix. Arguments and result as for :func:`alsc_reference`
+    (``options.max_iter`` and ``options.tol`` are not used).
+    """
+    o = options
+    b = _window(base, "base")
+    d = _window(dist, "dist")
+    gx, gy = gradients(d)
+    rx, ry = int(o.radius), o.ry
+    p = np.array(init, dtype=np.float64).reshape(NPARAMS)
+    out = np.full(NFIELDS, np.nan)
+    out[:NPARAMS] = p
+    out[11] = 0.0
+    bh, bw = b.shape
+    if col - rx < 0 or col + rx >= bw or row - ry < 0 or row + ry >= bh:
+        return out, Exit.OUTSIDE
+    t = b[row - ry : row + ry + 1, col - rx : col + rx + 1].astype(np.float64).ravel()
+    if not np.isfinite(t).all():
+        return out, Exit.OUTSIDE
+    vv, uu = np.mgrid[-ry : ry + 1, -rx : rx + 1].astype(np.float64)
+    u, v = uu.ravel(), vv.ravel()
+    npix = u.size
+    dh, dw = d.shape
+    px = p[0] + p[2] * u + p[3] * v
+    py = p[1] + p[4] * u + p[5] * v
+    if o.interpolation == "cubic":
+        if not ((px >= 1) & (px < dw - 2) & (py >= 1) & (py < dh - 2)).all():
+            return out, Exit.OUTSIDE
+        g, ix, iy = _cubic_reference(d, px, py)
+    else:
+        if not ((px >= 0) & (px < dw - 1) & (py >= 0) & (py < dh - 1)).all():
+            return out, Exit.OUTSIDE
+        c0 = np.floor(px).astype(np.intp)
+        r0 = np.floor(py).astype(np.intp)
+        fx, fy = px - c0, py - r0
+
+        def bilinear(img: np.ndarray) -> np.ndarray:
+            return (
+                (1 - fx) * (1 - fy) * img[r0, c0]
+                + fx * (1 - fy) * img[r0, c0 + 1]
+                + (1 - fx) * fy * img[r0 + 1, c0]
+                + fx * fy * img[r0 + 1, c0 + 1]
+            )
+
+        g, ix, iy = bilinear(d), bilinear(gx), bilinear(gy)
+    if not (np.isfinite(g).all() and np.isfinite(ix).all() and np.isfinite(iy).all()):
+        return out, Exit.OUTSIDE
+    gain, offset = p[7], p[6]
+    design = np.column_stack([gain * ix, gain * iy, gain * ix * u, gain * ix * v, gain * iy * u, gain * iy * v, np.ones(npix), g])
+    e = t - gain * g - offset
+    nmat = design.T @ design
+    tc, gc = t - t.mean(), g - g.mean()
+    den = np.sqrt((tc @ tc) * (gc @ gc))
+    rho = float(tc @ gc / den) if den > 0 else np.nan
+    out[10] = rho
+    if not _positive_definite(nmat):
+        return out, Exit.SINGULAR
+    step = np.linalg.solve(nmat, design.T @ e)
+    q = p + step
+    out[:NPARAMS] = q
+    out[11] = 1.0
+    cov = (e @ e) / (npix - NPARAMS) * np.linalg.inv(nmat)[:2, :2]
+    out[8], out[9] = np.sqrt(cov[0, 0]), np.sqrt(cov[1, 1])
+    shift = np.hypot(step[0], step[1])
+    if not shift < step_tol:
+        return out, Exit.NOT_CONVERGED
+    if shift > o.max_shift:
+        return out, Exit.MOVED
+    det0 = p[2] * p[5] - p[3] * p[4]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = (q[2] * q[5] - q[3] * q[4]) / det0
+    if not (o.min_det <= ratio <= 1.0 / o.min_det and q[7] > 0):
         return out, Exit.DEGENERATE
     if not rho >= o.min_rho:
         return out, Exit.LOW_CORRELATION

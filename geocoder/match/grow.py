@@ -80,7 +80,7 @@ def _quality(p):
 @numba.njit(nogil=True, cache=True)
 def grow(
     base, dist, grad_x, grad_y, seeds, params, code, tries, region, step, lattice_origin,
-    neighbours, max_tries, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma, min_det,
+    neighbours, max_tries, col_step, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma, min_det,
 ):
     """Grow matches from ``seeds`` inside ``region``; returns the number of new matches.
 
@@ -93,10 +93,13 @@ def grow(
     region : int64[4]
         ``row0, row1, col0, col1`` (half open, base window) where matches may be made.
     step : int
-        Lattice spacing; only pixels with ``(row - lattice_origin[0]) % step == 0`` (same
-        for columns) are matched.
+        Lattice spacing; only pixels with ``(row - lattice_origin[0]) % step == 0`` and
+        ``(col - lattice_origin[1]) % (step * col_step) == 0`` are matched.
     neighbours : int64 (m, 2)
         Neighbour offsets in lattice units (4- or 8-neighbourhood).
+    col_step : int
+        Extra spacing of the lattice columns (along the scan line): the columns between are
+        left to :func:`geocoder.match.fill.fill_lines`.
     """
     h, w = code.shape
     cap = max(1024, seeds.shape[0] * 8)
@@ -111,12 +114,19 @@ def grow(
     # seeds first, in the order given; an accepted seed is queued as its own parent
     for k in range(seeds.shape[0]):
         r, c = int(seeds[k, 0]), int(seeds[k, 1])
+        for j in range(8):
+            init[j] = seeds[k, 2 + j]
+        # a seed between lattice columns moves to the lattice column on its left, its start
+        # predicted through its own affine
+        shift = (c - lattice_origin[1]) % (step * col_step) if col_step > 1 else 0
+        if shift != 0:
+            c -= shift
+            init[0] -= init[2] * shift
+            init[1] -= init[4] * shift
         if r < r0 or r >= r1 or c < c0 or c >= c1 or code[r, c] == 0:
             continue
         if (r - lattice_origin[0]) % step != 0 or (c - lattice_origin[1]) % step != 0:
             continue
-        for j in range(8):
-            init[j] = seeds[k, 2 + j]
         e = alsc_point(
             base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
             max_sigma, min_det,
@@ -154,7 +164,7 @@ def grow(
         # (r, c) is accepted: queue its unmatched neighbours with it as the parent
         for n in range(neighbours.shape[0]):
             rr = r + neighbours[n, 0] * step
-            cc = c + neighbours[n, 1] * step
+            cc = c + neighbours[n, 1] * step * col_step
             if rr < r0 or rr >= r1 or cc < c0 or cc >= c1:
                 continue
             if code[rr, cc] == 0 or tries[rr, cc] >= max_tries:
@@ -177,6 +187,7 @@ def grow_window(
     lattice_origin: tuple[int, int] = (0, 0),
     neighbours: int = 4,
     max_tries: int = 2,
+    col_step: int = 1,
 ) -> int:
     """Python entry to :func:`grow` with options unpacked; returns the number of new matches."""
     tries = np.zeros(code.shape, np.uint8)
@@ -188,6 +199,6 @@ def grow_window(
             np.ascontiguousarray(grad[0], dtype=np.float32), np.ascontiguousarray(grad[1], dtype=np.float32),
             np.ascontiguousarray(seeds, dtype=np.float64), params, code, tries,
             np.asarray(region, dtype=np.int64), int(step), np.asarray(lattice_origin, dtype=np.int64),
-            offsets, int(max_tries), *o.kernel_args(),
+            offsets, int(max_tries), int(col_step), *o.kernel_args(),
         )
     )
