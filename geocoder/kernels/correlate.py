@@ -12,8 +12,10 @@ Foerstner (1982) / Gruen (1985) for least-squares matching.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .resample import sample
@@ -121,30 +123,26 @@ def refine_shift(
     """
     img = np.asarray(image, dtype=np.float32)
     gy, gx = np.gradient(img)
-    stack = np.stack([img, gx.astype(np.float32), gy.astype(np.float32)])
+    gx = np.ascontiguousarray(gx, dtype=np.float32)
+    gy = np.ascontiguousarray(gy, dtype=np.float32)
+    img = np.ascontiguousarray(img)
     offs = patch_offsets(radius)
-    du = jac[:, 0, 0, None] * offs[:, 0] + jac[:, 0, 1, None] * offs[:, 1]
-    dv = jac[:, 1, 0, None] * offs[:, 0] + jac[:, 1, 1, None] * offs[:, 1]
+    du = np.ascontiguousarray(jac[:, 0, 0, None] * offs[:, 0] + jac[:, 0, 1, None] * offs[:, 1])
+    dv = np.ascontiguousarray(jac[:, 1, 0, None] * offs[:, 0] + jac[:, 1, 1, None] * offs[:, 1])
     x = np.asarray(x0, dtype=np.float64).copy()
     y = np.asarray(y0, dtype=np.float64).copy()
     n, p = template.shape
-    t = template
+    t = np.ascontiguousarray(template, dtype=np.float64)
     converged = np.zeros(n, dtype=bool)
     nmat = np.zeros((n, 4, 4))
+    rhs = np.zeros((n, 4))
     res = np.full((n, p), np.nan)
+    g = np.empty((n, p))
+    # A converged point no longer moves: its normals are evaluated once more at its final
+    # position and then stay the same, so later iterations skip it.
+    todo = np.ones(n, dtype=np.bool_)
     for _ in range(iterations):
-        vals = sample(stack, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
-        g, ix, iy = vals
-        # radiometry first (closed form), then the shift step with it
-        gm, tm = g.mean(1, keepdims=True), t.mean(1, keepdims=True)
-        var = ((g - gm) ** 2).sum(1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            a = np.where(var > 0, ((g - gm) * (t - tm)).sum(1) / var, np.nan)
-        b = tm[:, 0] - a * gm[:, 0]
-        res = t - (a[:, None] * g + b[:, None])
-        design = np.stack([a[:, None] * ix, a[:, None] * iy, g, np.ones_like(g)], axis=2)
-        nmat = np.einsum("npi,npj->nij", design, design)
-        rhs = np.einsum("npi,np->ni", design, res)
+        _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo)
         bad = ~np.isfinite(nmat).all(axis=(1, 2)) | ~np.isfinite(rhs).all(axis=1)
         nmat[bad] = np.eye(4)
         rhs[bad] = 0.0
@@ -154,6 +152,7 @@ def refine_shift(
         x[active] += step[active, 0]
         y[active] += step[active, 1]
         converged |= np.hypot(step[:, 0], step[:, 1]) < tol
+        todo = active  # not converged before this step: still moving, or moved one last time
         if converged.all():
             break
     vals = sample(img, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
@@ -172,3 +171,122 @@ def refine_shift(
         rho=rho,
         ok=ok,
     )
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _tap2(im, r, c, wy0, wy1, wx0, wx1):  # pragma: no cover - compiled
+    """Bilinear sum over the 2 x 2 taps at ``(r.., c..)``, skipping taps of zero weight."""
+    acc = 0.0
+    if wy0 != 0.0:
+        row = 0.0
+        if wx0 != 0.0:
+            row += wx0 * im[r, c]
+        if wx1 != 0.0:
+            row += wx1 * im[r, c + 1]
+        acc += wy0 * row
+    if wy1 != 0.0:
+        row = 0.0
+        if wx0 != 0.0:
+            row += wx0 * im[r + 1, c]
+        if wx1 != 0.0:
+            row += wx1 * im[r + 1, c + 1]
+        acc += wy1 * row
+    return acc
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _bilinear3(img, gx, gy, xp, yp):  # pragma: no cover - compiled
+    """Bilinear values of ``img``, ``gx``, ``gy`` at one point, as :func:`sample` computes them.
+
+    Same tap rules (NaN outside, taps of zero weight never read) and the same float64
+    arithmetic, rounded to float32 like :func:`sample`'s output.
+    """
+    height, width = img.shape
+    if not (xp > -3.0 and xp < width + 2.0 and yp > -3.0 and yp < height + 2.0):
+        return np.nan, np.nan, np.nan
+    x0 = math.floor(xp)
+    y0 = math.floor(yp)
+    fx = xp - x0
+    fy = yp - y0
+    c = int(x0)
+    r = int(y0)
+    wx0, wx1, wy0, wy1 = 1.0 - fx, fx, 1.0 - fy, fy
+    if (wy0 != 0.0 and (r < 0 or r >= height)) or (wy1 != 0.0 and (r + 1 < 0 or r + 1 >= height)) \
+            or (wx0 != 0.0 and (c < 0 or c >= width)) or (wx1 != 0.0 and (c + 1 < 0 or c + 1 >= width)):
+        return np.nan, np.nan, np.nan
+    return (
+        np.float64(np.float32(_tap2(img, r, c, wy0, wy1, wx0, wx1))),
+        np.float64(np.float32(_tap2(gx, r, c, wy0, wy1, wx0, wx1))),
+        np.float64(np.float32(_tap2(gy, r, c, wy0, wy1, wx0, wx1))),
+    )
+
+
+@numba.njit(nogil=True, cache=True)
+def _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo):  # pragma: no cover - compiled
+    """Normal equations of one Gauss-Newton step of :func:`refine_shift`, points with ``todo``.
+
+    For point ``i`` the image and its gradients are sampled (bilinear) at
+    ``(x_i + du_i, y_i + dv_i)``; gain and offset come in closed form, then the design
+    rows ``(a I_x, a I_y, g, 1)`` and the residuals ``t - (a g + b)`` give ``nmat[i]``
+    (4 x 4), ``rhs[i]`` (4) and ``res[i]`` (P). NaN samples make the point's arrays NaN,
+    as in :func:`_shift_normals_reference`.
+    """
+    n, p = t.shape
+    ix = np.empty(p)
+    iy = np.empty(p)
+    d = np.empty(4)
+    for i in range(n):
+        if not todo[i]:
+            continue
+        gs = 0.0
+        ts = 0.0
+        for k in range(p):
+            v0, v1, v2 = _bilinear3(img, gx, gy, x[i] + du[i, k], y[i] + dv[i, k])
+            g[i, k] = v0
+            ix[k] = v1
+            iy[k] = v2
+            gs += v0
+            ts += t[i, k]
+        gm = gs / p
+        tm = ts / p
+        var = 0.0
+        cov = 0.0
+        for k in range(p):
+            var += (g[i, k] - gm) ** 2
+            cov += (g[i, k] - gm) * (t[i, k] - tm)
+        a = cov / var if var > 0 else np.nan
+        b = tm - a * gm
+        for r in range(4):
+            rhs[i, r] = 0.0
+            for c in range(4):
+                nmat[i, r, c] = 0.0
+        for k in range(p):
+            e = t[i, k] - (a * g[i, k] + b)
+            res[i, k] = e
+            d[0] = a * ix[k]
+            d[1] = a * iy[k]
+            d[2] = g[i, k]
+            d[3] = 1.0
+            for r in range(4):
+                rhs[i, r] += d[r] * e
+                for c in range(r, 4):
+                    nmat[i, r, c] += d[r] * d[c]
+        for r in range(4):
+            for c in range(r):
+                nmat[i, r, c] = nmat[i, c, r]
+
+
+def _shift_normals_reference(img, gx, gy, t, x, y, du, dv):
+    """Numpy reference of :func:`_shift_normals`: returns ``nmat, rhs, res, g``."""
+    stack = np.stack([img, gx, gy])
+    g, ix, iy = sample(stack, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
+    gm, tm = g.mean(1, keepdims=True), t.mean(1, keepdims=True)
+    var = ((g - gm) ** 2).sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(var > 0, ((g - gm) * (t - tm)).sum(1) / var, np.nan)
+    b = tm[:, 0] - a * gm[:, 0]
+    res = t - (a[:, None] * g + b[:, None])
+    design = np.stack([a[:, None] * ix, a[:, None] * iy, g, np.ones_like(g)], axis=2)
+    nmat = np.einsum("npi,npj->nij", design, design)
+    rhs = np.einsum("npi,np->ni", design, res)
+    return nmat, rhs, res, g
