@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .resample import sample
+from .resample import bilinear_taps, sample
 
 
 def patch_offsets(radius: int) -> np.ndarray:
@@ -174,27 +174,6 @@ def refine_shift(
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
-def _tap2(im, r, c, wy0, wy1, wx0, wx1):  # pragma: no cover - compiled
-    """Bilinear sum over the 2 x 2 taps at ``(r.., c..)``, skipping taps of zero weight."""
-    acc = 0.0
-    if wy0 != 0.0:
-        row = 0.0
-        if wx0 != 0.0:
-            row += wx0 * im[r, c]
-        if wx1 != 0.0:
-            row += wx1 * im[r, c + 1]
-        acc += wy0 * row
-    if wy1 != 0.0:
-        row = 0.0
-        if wx0 != 0.0:
-            row += wx0 * im[r + 1, c]
-        if wx1 != 0.0:
-            row += wx1 * im[r + 1, c + 1]
-        acc += wy1 * row
-    return acc
-
-
-@numba.njit(nogil=True, cache=True, inline="always")
 def _bilinear3(img, gx, gy, xp, yp):  # pragma: no cover - compiled
     """Bilinear values of ``img``, ``gx``, ``gy`` at one point, as :func:`sample` computes them.
 
@@ -215,9 +194,9 @@ def _bilinear3(img, gx, gy, xp, yp):  # pragma: no cover - compiled
             or (wx0 != 0.0 and (c < 0 or c >= width)) or (wx1 != 0.0 and (c + 1 < 0 or c + 1 >= width)):
         return np.nan, np.nan, np.nan
     return (
-        np.float64(np.float32(_tap2(img, r, c, wy0, wy1, wx0, wx1))),
-        np.float64(np.float32(_tap2(gx, r, c, wy0, wy1, wx0, wx1))),
-        np.float64(np.float32(_tap2(gy, r, c, wy0, wy1, wx0, wx1))),
+        np.float64(np.float32(bilinear_taps(img, r, c, wy0, wy1, wx0, wx1))),
+        np.float64(np.float32(bilinear_taps(gx, r, c, wy0, wy1, wx0, wx1))),
+        np.float64(np.float32(bilinear_taps(gy, r, c, wy0, wy1, wx0, wx1))),
     )
 
 
