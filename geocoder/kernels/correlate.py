@@ -213,7 +213,6 @@ def _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo):  # pr
     n, p = t.shape
     ix = np.empty(p)
     iy = np.empty(p)
-    d = np.empty(4)
     for i in range(n):
         if not todo[i]:
             continue
@@ -235,24 +234,44 @@ def _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo):  # pr
             cov += (g[i, k] - gm) * (t[i, k] - tm)
         a = cov / var if var > 0 else np.nan
         b = tm - a * gm
-        for r in range(4):
-            rhs[i, r] = 0.0
-            for c in range(4):
-                nmat[i, r, c] = 0.0
+        # design row (a I_x, a I_y, g, 1); the 10 distinct entries of the normals as scalars
+        n00 = n01 = n02 = n03 = n11 = n12 = n13 = n22 = n23 = n33 = 0.0
+        r0 = r1 = r2 = r3 = 0.0
         for k in range(p):
-            e = t[i, k] - (a * g[i, k] + b)
+            gk = g[i, k]
+            e = t[i, k] - (a * gk + b)
             res[i, k] = e
-            d[0] = a * ix[k]
-            d[1] = a * iy[k]
-            d[2] = g[i, k]
-            d[3] = 1.0
-            for r in range(4):
-                rhs[i, r] += d[r] * e
-                for c in range(r, 4):
-                    nmat[i, r, c] += d[r] * d[c]
-        for r in range(4):
-            for c in range(r):
-                nmat[i, r, c] = nmat[i, c, r]
+            d0 = a * ix[k]
+            d1 = a * iy[k]
+            r0 += d0 * e
+            r1 += d1 * e
+            r2 += gk * e
+            r3 += e
+            n00 += d0 * d0
+            n01 += d0 * d1
+            n02 += d0 * gk
+            n03 += d0
+            n11 += d1 * d1
+            n12 += d1 * gk
+            n13 += d1
+            n22 += gk * gk
+            n23 += gk
+            n33 += 1.0
+        rhs[i, 0] = r0
+        rhs[i, 1] = r1
+        rhs[i, 2] = r2
+        rhs[i, 3] = r3
+        nm = nmat[i]
+        nm[0, 0] = n00
+        nm[0, 1] = nm[1, 0] = n01
+        nm[0, 2] = nm[2, 0] = n02
+        nm[0, 3] = nm[3, 0] = n03
+        nm[1, 1] = n11
+        nm[1, 2] = nm[2, 1] = n12
+        nm[1, 3] = nm[3, 1] = n13
+        nm[2, 2] = n22
+        nm[2, 3] = nm[3, 2] = n23
+        nm[3, 3] = n33
 
 
 def _shift_normals_reference(img, gx, gy, t, x, y, du, dv):

@@ -117,6 +117,8 @@ def bilinear_taps(im, r, c, wy0, wy1, wx0, wx1):  # pragma: no cover - compiled
 
     The arithmetic of :func:`_accumulate` for two taps per axis, written out (2-D ``im``).
     """
+    if wx0 != 0.0 and wx1 != 0.0 and wy0 != 0.0 and wy1 != 0.0:  # the usual case: the same sums, no tests
+        return wy0 * (wx0 * im[r, c] + wx1 * im[r, c + 1]) + wy1 * (wx0 * im[r + 1, c] + wx1 * im[r + 1, c + 1])
     acc = 0.0
     if wy0 != 0.0:
         row = 0.0
