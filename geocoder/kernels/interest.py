@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from scipy import ndimage
 
 
 @dataclass(frozen=True)
@@ -262,7 +263,14 @@ def select_points(
     """
     interest = np.where((q > q_min) & (w > w_min), w, 0).astype(np.float64)
     r0, r1, c0, c1 = core if core is not None else (0, w.shape[0], 0, w.shape[1])
-    rows, cols = np.nonzero(interest[r0:r1, c0:c1])
+    # a strict maximum of its (2 radius + 1)^2 window is at least as large as its 8
+    # neighbours: that cheap test (exact, outside the block counts as 0 as in
+    # _strict_maxima) leaves the full window test to a few candidates
+    if radius >= 1:
+        near = ndimage.maximum_filter(interest, size=3, mode="constant", cval=0.0)
+        rows, cols = np.nonzero((interest[r0:r1, c0:c1] > 0) & (interest[r0:r1, c0:c1] >= near[r0:r1, c0:c1]))
+    else:
+        rows, cols = np.nonzero(interest[r0:r1, c0:c1])
     rows = (rows + r0).astype(np.int64)
     cols = (cols + c0).astype(np.int64)
     width = int(width if width is not None else w.shape[1])
