@@ -201,6 +201,47 @@ def _bilinear3(img, gx, gy, xp, yp):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
+def _sample_patch_fast(img, gx, gy, x, y, du, dv, g, ix, iy):  # pragma: no cover - compiled
+    """Image and gradients at ``(x + du, y + dv)`` when every tap of every sample is inside
+    and weighs (the usual case); False, and partial output, as soon as one is not.
+
+    The sums are :func:`sample`'s for four weighing taps, in its order; kept apart from the
+    general case so that this loop compiles tight.
+    """
+    height, width = img.shape
+    for k in range(du.shape[0]):
+        xp = x + du[k]
+        yp = y + dv[k]
+        if not (xp > 0.0 and xp < width - 1 and yp > 0.0 and yp < height - 1):
+            return False
+        x0 = math.floor(xp)
+        y0 = math.floor(yp)
+        fx = xp - x0
+        fy = yp - y0
+        if fx == 0.0 or fy == 0.0:
+            return False
+        c = int(x0)
+        r = int(y0)
+        wx0, wx1, wy0, wy1 = 1.0 - fx, fx, 1.0 - fy, fy
+        if wx0 == 0.0 or wy0 == 0.0:
+            return False
+        g[k] = np.float32(wy0 * (wx0 * img[r, c] + wx1 * img[r, c + 1]) + wy1 * (wx0 * img[r + 1, c] + wx1 * img[r + 1, c + 1]))
+        ix[k] = np.float32(wy0 * (wx0 * gx[r, c] + wx1 * gx[r, c + 1]) + wy1 * (wx0 * gx[r + 1, c] + wx1 * gx[r + 1, c + 1]))
+        iy[k] = np.float32(wy0 * (wx0 * gy[r, c] + wx1 * gy[r, c + 1]) + wy1 * (wx0 * gy[r + 1, c] + wx1 * gy[r + 1, c + 1]))
+    return True
+
+
+@numba.njit(nogil=True, cache=True)
+def _sample_patch(img, gx, gy, x, y, du, dv, g, ix, iy):  # pragma: no cover - compiled
+    """Image and gradients at ``(x + du, y + dv)``, any position (NaN as :func:`sample`)."""
+    for k in range(du.shape[0]):
+        v0, v1, v2 = _bilinear3(img, gx, gy, x + du[k], y + dv[k])
+        g[k] = v0
+        ix[k] = v1
+        iy[k] = v2
+
+
+@numba.njit(nogil=True, cache=True)
 def _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo):  # pragma: no cover - compiled
     """Normal equations of one Gauss-Newton step of :func:`refine_shift`, points with ``todo``.
 
@@ -216,14 +257,12 @@ def _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo):  # pr
     for i in range(n):
         if not todo[i]:
             continue
+        if not _sample_patch_fast(img, gx, gy, x[i], y[i], du[i], dv[i], g[i], ix, iy):
+            _sample_patch(img, gx, gy, x[i], y[i], du[i], dv[i], g[i], ix, iy)
         gs = 0.0
         ts = 0.0
         for k in range(p):
-            v0, v1, v2 = _bilinear3(img, gx, gy, x[i] + du[i, k], y[i] + dv[i, k])
-            g[i, k] = v0
-            ix[k] = v1
-            iy[k] = v2
-            gs += v0
+            gs += g[i, k]
             ts += t[i, k]
         gm = gs / p
         tm = ts / p
