@@ -78,7 +78,16 @@ def resample(reader: WindowReader, dx: da.Array, dy: da.Array, *, method: str = 
     )
 
 
+def _status_block(block: np.ndarray) -> np.ndarray:
+    inside = ~np.isnan(block).all(axis=0)
+    return np.where(inside, np.uint8(Status.MODEL), np.uint8(Status.OUTSIDE)).astype(np.uint8)
+
+
 def model_status(registered: da.Array) -> da.Array:
-    """Status of a polynomial-only registration: MODEL inside the overlap, else OUTSIDE."""
-    inside = ~da.isnan(registered).all(axis=0)
-    return da.where(inside, np.uint8(Status.MODEL), np.uint8(Status.OUTSIDE)).astype(np.uint8)
+    """Status of a polynomial-only registration: MODEL inside the overlap, else OUTSIDE.
+
+    One task per tile (``isnan``, ``all``, ``~`` and ``where`` as separate array
+    operations made four).
+    """
+    return da.map_blocks(_status_block, registered, drop_axis=0, dtype=np.uint8,
+                         chunks=registered.chunks[1:])
