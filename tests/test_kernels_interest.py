@@ -80,3 +80,32 @@ def test_tiled_points_equal_whole_image(shared_data, chunks):
     np.testing.assert_array_equal(tiled.x, ref.x)
     np.testing.assert_array_equal(tiled.y, ref.y)
     np.testing.assert_allclose(tiled.w, ref.w, rtol=1e-6)
+
+
+def test_foerstner_matches_numpy_reference_and_is_block_independent():
+    from geocoder.kernels.interest import foerstner_reference
+
+    rng = np.random.default_rng(6)
+    img = ndi.gaussian_filter(rng.normal(size=(150, 170)), 1.5) * 1000
+    img[60:66, 30:41] = np.nan
+    w, q = foerstner(img, window=7)
+    wr, qr = foerstner_reference(img, window=7)
+    np.testing.assert_array_equal(w > 0, wr > 0)
+    np.testing.assert_allclose(w, wr, rtol=1e-5, atol=1e-6 * wr.max())
+    np.testing.assert_allclose(q, qr, rtol=1e-5, atol=1e-6)
+    wb, qb = foerstner(img[17:120, 9:151], window=7)  # any block: the same values, bit for bit
+    np.testing.assert_array_equal(wb[3:-3, 3:-3], w[20:117, 12:148])
+    np.testing.assert_array_equal(qb[3:-3, 3:-3], q[20:117, 12:148])
+
+
+@pytest.mark.parametrize("chunks", [64, 128])
+def test_one_pass_tiles_equal_whole_image_synthetic(chunks):
+    rng = np.random.default_rng(7)
+    img = ndi.gaussian_filter(rng.normal(size=(320, 256)), 1.2)
+    img[:, :20] = np.nan
+    ref = detect(img)
+    tiled = interest_points(da.from_array(img.astype(np.float32), chunks=chunks), InterestOptions())
+    assert len(ref) > 100
+    np.testing.assert_array_equal(tiled.x, ref.x)
+    np.testing.assert_array_equal(tiled.y, ref.y)
+    np.testing.assert_allclose(tiled.w, ref.w, rtol=1e-6)

@@ -12,11 +12,13 @@ Foerstner (1982) / Gruen (1985) for least-squares matching.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
-from .resample import sample
+from .resample import bilinear_taps, sample
 
 
 def patch_offsets(radius: int) -> np.ndarray:
@@ -121,30 +123,26 @@ def refine_shift(
     """
     img = np.asarray(image, dtype=np.float32)
     gy, gx = np.gradient(img)
-    stack = np.stack([img, gx.astype(np.float32), gy.astype(np.float32)])
+    gx = np.ascontiguousarray(gx, dtype=np.float32)
+    gy = np.ascontiguousarray(gy, dtype=np.float32)
+    img = np.ascontiguousarray(img)
     offs = patch_offsets(radius)
-    du = jac[:, 0, 0, None] * offs[:, 0] + jac[:, 0, 1, None] * offs[:, 1]
-    dv = jac[:, 1, 0, None] * offs[:, 0] + jac[:, 1, 1, None] * offs[:, 1]
+    du = np.ascontiguousarray(jac[:, 0, 0, None] * offs[:, 0] + jac[:, 0, 1, None] * offs[:, 1])
+    dv = np.ascontiguousarray(jac[:, 1, 0, None] * offs[:, 0] + jac[:, 1, 1, None] * offs[:, 1])
     x = np.asarray(x0, dtype=np.float64).copy()
     y = np.asarray(y0, dtype=np.float64).copy()
     n, p = template.shape
-    t = template
+    t = np.ascontiguousarray(template, dtype=np.float64)
     converged = np.zeros(n, dtype=bool)
     nmat = np.zeros((n, 4, 4))
+    rhs = np.zeros((n, 4))
     res = np.full((n, p), np.nan)
+    g = np.empty((n, p))
+    # A converged point no longer moves: its normals are evaluated once more at its final
+    # position and then stay the same, so later iterations skip it.
+    todo = np.ones(n, dtype=np.bool_)
     for _ in range(iterations):
-        vals = sample(stack, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
-        g, ix, iy = vals
-        # radiometry first (closed form), then the shift step with it
-        gm, tm = g.mean(1, keepdims=True), t.mean(1, keepdims=True)
-        var = ((g - gm) ** 2).sum(1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            a = np.where(var > 0, ((g - gm) * (t - tm)).sum(1) / var, np.nan)
-        b = tm[:, 0] - a * gm[:, 0]
-        res = t - (a[:, None] * g + b[:, None])
-        design = np.stack([a[:, None] * ix, a[:, None] * iy, g, np.ones_like(g)], axis=2)
-        nmat = np.einsum("npi,npj->nij", design, design)
-        rhs = np.einsum("npi,np->ni", design, res)
+        _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo)
         bad = ~np.isfinite(nmat).all(axis=(1, 2)) | ~np.isfinite(rhs).all(axis=1)
         nmat[bad] = np.eye(4)
         rhs[bad] = 0.0
@@ -154,6 +152,7 @@ def refine_shift(
         x[active] += step[active, 0]
         y[active] += step[active, 1]
         converged |= np.hypot(step[:, 0], step[:, 1]) < tol
+        todo = active  # not converged before this step: still moving, or moved one last time
         if converged.all():
             break
     vals = sample(img, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
@@ -172,3 +171,159 @@ def refine_shift(
         rho=rho,
         ok=ok,
     )
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _bilinear3(img, gx, gy, xp, yp):  # pragma: no cover - compiled
+    """Bilinear values of ``img``, ``gx``, ``gy`` at one point, as :func:`sample` computes them.
+
+    Same tap rules (NaN outside, taps of zero weight never read) and the same float64
+    arithmetic, rounded to float32 like :func:`sample`'s output.
+    """
+    height, width = img.shape
+    if not (xp > -3.0 and xp < width + 2.0 and yp > -3.0 and yp < height + 2.0):
+        return np.nan, np.nan, np.nan
+    x0 = math.floor(xp)
+    y0 = math.floor(yp)
+    fx = xp - x0
+    fy = yp - y0
+    c = int(x0)
+    r = int(y0)
+    wx0, wx1, wy0, wy1 = 1.0 - fx, fx, 1.0 - fy, fy
+    if (wy0 != 0.0 and (r < 0 or r >= height)) or (wy1 != 0.0 and (r + 1 < 0 or r + 1 >= height)) \
+            or (wx0 != 0.0 and (c < 0 or c >= width)) or (wx1 != 0.0 and (c + 1 < 0 or c + 1 >= width)):
+        return np.nan, np.nan, np.nan
+    return (
+        np.float64(np.float32(bilinear_taps(img, r, c, wy0, wy1, wx0, wx1))),
+        np.float64(np.float32(bilinear_taps(gx, r, c, wy0, wy1, wx0, wx1))),
+        np.float64(np.float32(bilinear_taps(gy, r, c, wy0, wy1, wx0, wx1))),
+    )
+
+
+@numba.njit(nogil=True, cache=True)
+def _sample_patch_fast(img, gx, gy, x, y, du, dv, g, ix, iy):  # pragma: no cover - compiled
+    """Image and gradients at ``(x + du, y + dv)`` when every tap of every sample is inside
+    and weighs (the usual case); False, and partial output, as soon as one is not.
+
+    The sums are :func:`sample`'s for four weighing taps, in its order; kept apart from the
+    general case so that this loop compiles tight.
+    """
+    height, width = img.shape
+    for k in range(du.shape[0]):
+        xp = x + du[k]
+        yp = y + dv[k]
+        if not (xp > 0.0 and xp < width - 1 and yp > 0.0 and yp < height - 1):
+            return False
+        x0 = math.floor(xp)
+        y0 = math.floor(yp)
+        fx = xp - x0
+        fy = yp - y0
+        if fx == 0.0 or fy == 0.0:
+            return False
+        c = int(x0)
+        r = int(y0)
+        wx0, wx1, wy0, wy1 = 1.0 - fx, fx, 1.0 - fy, fy
+        if wx0 == 0.0 or wy0 == 0.0:
+            return False
+        g[k] = np.float32(wy0 * (wx0 * img[r, c] + wx1 * img[r, c + 1]) + wy1 * (wx0 * img[r + 1, c] + wx1 * img[r + 1, c + 1]))
+        ix[k] = np.float32(wy0 * (wx0 * gx[r, c] + wx1 * gx[r, c + 1]) + wy1 * (wx0 * gx[r + 1, c] + wx1 * gx[r + 1, c + 1]))
+        iy[k] = np.float32(wy0 * (wx0 * gy[r, c] + wx1 * gy[r, c + 1]) + wy1 * (wx0 * gy[r + 1, c] + wx1 * gy[r + 1, c + 1]))
+    return True
+
+
+@numba.njit(nogil=True, cache=True)
+def _sample_patch(img, gx, gy, x, y, du, dv, g, ix, iy):  # pragma: no cover - compiled
+    """Image and gradients at ``(x + du, y + dv)``, any position (NaN as :func:`sample`)."""
+    for k in range(du.shape[0]):
+        v0, v1, v2 = _bilinear3(img, gx, gy, x + du[k], y + dv[k])
+        g[k] = v0
+        ix[k] = v1
+        iy[k] = v2
+
+
+@numba.njit(nogil=True, cache=True)
+def _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo):  # pragma: no cover - compiled
+    """Normal equations of one Gauss-Newton step of :func:`refine_shift`, points with ``todo``.
+
+    For point ``i`` the image and its gradients are sampled (bilinear) at
+    ``(x_i + du_i, y_i + dv_i)``; gain and offset come in closed form, then the design
+    rows ``(a I_x, a I_y, g, 1)`` and the residuals ``t - (a g + b)`` give ``nmat[i]``
+    (4 x 4), ``rhs[i]`` (4) and ``res[i]`` (P). NaN samples make the point's arrays NaN,
+    as in :func:`_shift_normals_reference`.
+    """
+    n, p = t.shape
+    ix = np.empty(p)
+    iy = np.empty(p)
+    for i in range(n):
+        if not todo[i]:
+            continue
+        if not _sample_patch_fast(img, gx, gy, x[i], y[i], du[i], dv[i], g[i], ix, iy):
+            _sample_patch(img, gx, gy, x[i], y[i], du[i], dv[i], g[i], ix, iy)
+        gs = 0.0
+        ts = 0.0
+        for k in range(p):
+            gs += g[i, k]
+            ts += t[i, k]
+        gm = gs / p
+        tm = ts / p
+        var = 0.0
+        cov = 0.0
+        for k in range(p):
+            var += (g[i, k] - gm) ** 2
+            cov += (g[i, k] - gm) * (t[i, k] - tm)
+        a = cov / var if var > 0 else np.nan
+        b = tm - a * gm
+        # design row (a I_x, a I_y, g, 1); the 10 distinct entries of the normals as scalars
+        n00 = n01 = n02 = n03 = n11 = n12 = n13 = n22 = n23 = n33 = 0.0
+        r0 = r1 = r2 = r3 = 0.0
+        for k in range(p):
+            gk = g[i, k]
+            e = t[i, k] - (a * gk + b)
+            res[i, k] = e
+            d0 = a * ix[k]
+            d1 = a * iy[k]
+            r0 += d0 * e
+            r1 += d1 * e
+            r2 += gk * e
+            r3 += e
+            n00 += d0 * d0
+            n01 += d0 * d1
+            n02 += d0 * gk
+            n03 += d0
+            n11 += d1 * d1
+            n12 += d1 * gk
+            n13 += d1
+            n22 += gk * gk
+            n23 += gk
+            n33 += 1.0
+        rhs[i, 0] = r0
+        rhs[i, 1] = r1
+        rhs[i, 2] = r2
+        rhs[i, 3] = r3
+        nm = nmat[i]
+        nm[0, 0] = n00
+        nm[0, 1] = nm[1, 0] = n01
+        nm[0, 2] = nm[2, 0] = n02
+        nm[0, 3] = nm[3, 0] = n03
+        nm[1, 1] = n11
+        nm[1, 2] = nm[2, 1] = n12
+        nm[1, 3] = nm[3, 1] = n13
+        nm[2, 2] = n22
+        nm[2, 3] = nm[3, 2] = n23
+        nm[3, 3] = n33
+
+
+def _shift_normals_reference(img, gx, gy, t, x, y, du, dv):
+    """Numpy reference of :func:`_shift_normals`: returns ``nmat, rhs, res, g``."""
+    stack = np.stack([img, gx, gy])
+    g, ix, iy = sample(stack, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
+    gm, tm = g.mean(1, keepdims=True), t.mean(1, keepdims=True)
+    var = ((g - gm) ** 2).sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(var > 0, ((g - gm) * (t - tm)).sum(1) / var, np.nan)
+    b = tm[:, 0] - a * gm[:, 0]
+    res = t - (a[:, None] * g + b[:, None])
+    design = np.stack([a[:, None] * ix, a[:, None] * iy, g, np.ones_like(g)], axis=2)
+    nmat = np.einsum("npi,npj->nij", design, design)
+    rhs = np.einsum("npi,np->ni", design, res)
+    return nmat, rhs, res, g

@@ -112,25 +112,76 @@ def _sample_nearest(image, x, y, out):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
+def bilinear_taps(im, r, c, wy0, wy1, wx0, wx1):  # pragma: no cover - compiled
+    """``sum_j wy_j (sum_i wx_i im[r + j, c + i])`` over the 2 x 2 taps, skipping zero weights.
+
+    The arithmetic of :func:`_accumulate` for two taps per axis, written out (2-D ``im``).
+    """
+    if wx0 != 0.0 and wx1 != 0.0 and wy0 != 0.0 and wy1 != 0.0:  # the usual case: the same sums, no tests
+        return wy0 * (wx0 * im[r, c] + wx1 * im[r, c + 1]) + wy1 * (wx0 * im[r + 1, c] + wx1 * im[r + 1, c + 1])
+    acc = 0.0
+    if wy0 != 0.0:
+        row = 0.0
+        if wx0 != 0.0:
+            row += wx0 * im[r, c]
+        if wx1 != 0.0:
+            row += wx1 * im[r, c + 1]
+        acc += wy0 * row
+    if wy1 != 0.0:
+        row = 0.0
+        if wx0 != 0.0:
+            row += wx0 * im[r + 1, c]
+        if wx1 != 0.0:
+            row += wx1 * im[r + 1, c + 1]
+        acc += wy1 * row
+    return acc
+
+
+@numba.njit(nogil=True, cache=True)
+def _bilinear_point(image, out, p, xp, yp):  # pragma: no cover - compiled
+    """General bilinear sample of point ``p`` (edges, integral positions, outside)."""
+    nbands, height, width = image.shape
+    if not (xp > -3.0 and xp < width + 2.0 and yp > -3.0 and yp < height + 2.0):
+        _set_nan(out, p)
+        return
+    x0 = math.floor(xp)
+    y0 = math.floor(yp)
+    fx = xp - x0
+    fy = yp - y0
+    c = int(x0)
+    r = int(y0)
+    wx0, wx1, wy0, wy1 = 1.0 - fx, fx, 1.0 - fy, fy
+    # every tap with a non-zero weight must be inside the image
+    if (wy0 != 0.0 and (r < 0 or r >= height)) or (wy1 != 0.0 and (r + 1 < 0 or r + 1 >= height)) \
+            or (wx0 != 0.0 and (c < 0 or c >= width)) or (wx1 != 0.0 and (c + 1 < 0 or c + 1 >= width)):
+        _set_nan(out, p)
+        return
+    for b in range(nbands):
+        out[b, p] = bilinear_taps(image[b], r, c, wy0, wy1, wx0, wx1)
+
+
+@numba.njit(nogil=True, cache=True)
 def _sample_bilinear(image, x, y, out):  # pragma: no cover - compiled
-    _, height, width = image.shape
-    wx = np.empty(2)
-    wy = np.empty(2)
+    nbands, height, width = image.shape
     for p in range(x.shape[0]):
         xp = x[p]
         yp = y[p]
-        if not (xp > -3.0 and xp < width + 2.0 and yp > -3.0 and yp < height + 2.0):
-            _set_nan(out, p)
-            continue
-        x0 = math.floor(xp)
-        y0 = math.floor(yp)
-        fx = xp - x0
-        fy = yp - y0
-        wx[0] = 1.0 - fx
-        wx[1] = fx
-        wy[0] = 1.0 - fy
-        wy[1] = fy
-        _accumulate(image, out, p, int(y0), int(x0), wy, wx)
+        # the usual case first, kept free of the general code so that it compiles tight:
+        # inside, and all four taps weigh (the same sums as bilinear_taps)
+        if xp > 0.0 and xp < width - 1 and yp > 0.0 and yp < height - 1:
+            x0 = math.floor(xp)
+            y0 = math.floor(yp)
+            fx = xp - x0
+            fy = yp - y0
+            wx0, wx1, wy0, wy1 = 1.0 - fx, fx, 1.0 - fy, fy
+            if wx0 != 0.0 and wx1 != 0.0 and wy0 != 0.0 and wy1 != 0.0:
+                c = int(x0)
+                r = int(y0)
+                for b in range(nbands):
+                    out[b, p] = wy0 * (wx0 * image[b, r, c] + wx1 * image[b, r, c + 1]) \
+                        + wy1 * (wx0 * image[b, r + 1, c] + wx1 * image[b, r + 1, c + 1])
+                continue
+        _bilinear_point(image, out, p, xp, yp)
 
 
 @numba.njit(nogil=True, cache=True)

@@ -1,11 +1,13 @@
 """Tile-parallel interest points: the Foerstner operator over a dask array.
 
-Two passes over the tiles. The first computes ``w`` for every pixel (``map_overlap``, halo =
-half the window) and reduces it to the global mean that fixes the size threshold
-``w_min = f * mean(w)``; the second recomputes ``w, q`` on every tile plus a halo of
+One pass over the tiles: every task computes ``w, q`` on its tile plus a halo of
 ``window // 2 + 1 + radius`` (enough for the non-maximum suppression to see every neighbour
-of a core pixel) and keeps the points of the core. So points on tile borders are neither
-duplicated nor lost, and the result does not depend on the tile size (see the tests).
+of a core pixel), returns the sum of ``w`` over its core and the core's candidate points
+(non-maximum suppression and the per-cell cap need no size threshold, see
+:func:`_tile_candidates`). The gathered sums fix ``w_min = f * mean(w)``, applied to the
+candidates on the client. So points on tile borders are neither duplicated nor lost, and the
+result does not depend on the tile size (see the tests). (Until 0.1 this took two passes,
+reading and filtering every tile twice.)
 """
 
 from __future__ import annotations
@@ -38,23 +40,6 @@ class InterestOptions:
         return self.window // 2 + 1 + self.radius
 
 
-def _w_only(block: np.ndarray, window: int) -> np.ndarray:
-    return foerstner(block, window=window)[0]
-
-
-def _points_block(block, origin, core, width, w_min, opts: InterestOptions) -> InterestPoints:
-    w, q = foerstner(block, window=opts.window)
-    return select_points(
-        w, q, w_min=w_min, q_min=opts.q_min, radius=opts.radius,
-        cell=opts.cell, cap=opts.cap, core=core, origin=origin, width=width,
-    )
-
-
-def _w_sum(block: np.ndarray) -> tuple[float, int]:
-    good = block > 0
-    return float(block[good].astype(np.float64).sum()), int(good.sum())
-
-
 def _clipped(grid: TileGrid, iy: int, ix: int, depth: int) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
     """Global window of tile (iy, ix) grown by ``depth`` inside the image (as ``boundary='none'``), and its core in it."""
     r0, c0, core = grid.overlapped_origin(iy, ix, depth)
@@ -63,13 +48,36 @@ def _clipped(grid: TileGrid, iy: int, ix: int, depth: int) -> tuple[tuple[int, i
     return (r0, int(rows), c0, int(cols)), core
 
 
-def _w_sum_window(reader: WindowReader, band: int, window, core, size: int) -> tuple[float, int]:
-    w = foerstner(reader.read(*window)[band], window=size)[0]
-    return _w_sum(w[core[0] : core[1], core[2] : core[3]])
+def _tile_candidates(block: np.ndarray, origin, core, width, opts: InterestOptions) -> tuple[float, int, InterestPoints]:
+    """One pass over a tile (core plus ``opts.halo``): its share of the global mean of ``w``
+    and its candidate points, thinned before the size threshold is known.
+
+    The candidates are the points :func:`select_points` keeps with ``w_min = 0``. For any
+    ``w_min >= 0`` the points it keeps are exactly the candidates with ``w > w_min``: a
+    candidate above the threshold is suppressed only by neighbours at least as strong,
+    which pass the threshold too, and the strongest ``cap`` of a cell above a threshold
+    are the strongest ``cap`` of the cell cut at that threshold (cells never straddle tiles).
+    """
+    w, q = foerstner(block, window=opts.window)
+    r0, r1, c0, c1 = core
+    wc = w[r0:r1, c0:c1]
+    good = wc > 0
+    total, count = float(wc[good].astype(np.float64).sum()), int(good.sum())
+    cands = select_points(
+        w, q, w_min=0.0, q_min=opts.q_min, radius=opts.radius,
+        cell=opts.cell, cap=opts.cap, core=core, origin=origin, width=width,
+    )
+    return total, count, cands
 
 
-def _points_window(reader: WindowReader, band: int, window, core, width, w_min, opts: InterestOptions) -> InterestPoints:
-    return _points_block(reader.read(*window)[band], (window[0], window[2]), core, width, w_min, opts)
+def _window_candidates(reader: WindowReader, band: int, window, core, width, opts: InterestOptions):
+    return _tile_candidates(reader.read(*window)[band], (window[0], window[2]), core, width, opts)
+
+
+def _above(points: InterestPoints, w_min: float) -> InterestPoints:
+    """Points with ``w > w_min``, compared in float32 as the float32 ``w`` map is."""
+    keep = points.w.astype(np.float32) > np.float32(w_min)
+    return InterestPoints(points.x[keep], points.y[keep], points.w[keep], points.q[keep])
 
 
 def interest_points(image: da.Array, opts: InterestOptions = InterestOptions(), *, job: Job | None = None, name: str = "image",
@@ -102,33 +110,23 @@ def interest_points(image: da.Array, opts: InterestOptions = InterestOptions(), 
     for size in (*grid.rows[:-1], *grid.cols[:-1]):
         if size % opts.cell:
             raise ValueError(f"tile size {size} is not a multiple of the interest cell {opts.cell}")
-    # pass 1: the mean interest value over the whole image (the seed's threshold is global)
-    depth1 = opts.window // 2 + 1
-    keys = [(iy, ix) for iy in range(len(grid.rows)) for ix in range(len(grid.cols))]
-    if reader is not None:
-        tasks = {}
-        for iy, ix in keys:
-            window, core = _clipped(grid, iy, ix, depth1)
-            tasks[f"{iy}-{ix}"] = dask.delayed(_w_sum_window, pure=True)(reader, band, window, core, opts.window)
-    else:
-        wmap = image.map_overlap(_w_only, depth=depth1, boundary="none", dtype=np.float32, window=opts.window).to_delayed()
-        tasks = {f"{iy}-{ix}": dask.delayed(_w_sum)(wmap[iy, ix]) for iy, ix in keys}
-    sums = run_tiles(job, f"interest-mean-{name}", tasks, phase=f"interest points ({name}, 1/2)")
-    total = sum(s for s, _ in sums.values())
-    count = sum(c for _, c in sums.values())
-    if count == 0:
-        return InterestPoints.concatenate([])
-    w_min = opts.f * total / count
-    # pass 2: points per tile, thinned on the global cell grid
+    # one pass: every tile gives its sum of w (the seed's threshold f * mean(w) is global)
+    # and its thinned candidates; the threshold is applied here, on the gathered candidates
     depth = opts.halo
+    keys = [(iy, ix) for iy in range(len(grid.rows)) for ix in range(len(grid.cols))]
     if reader is None:
         blocks = da.overlap.overlap(image, depth={0: depth, 1: depth}, boundary="none").to_delayed()
     tasks = {}
     for iy, ix in keys:
         window, core = _clipped(grid, iy, ix, depth)
         if reader is not None:
-            tasks[f"{iy}-{ix}"] = dask.delayed(_points_window, pure=True)(reader, band, window, core, w, w_min, opts)
+            tasks[f"{iy}-{ix}"] = dask.delayed(_window_candidates, pure=True)(reader, band, window, core, w, opts)
         else:
-            tasks[f"{iy}-{ix}"] = dask.delayed(_points_block, pure=True)(blocks[iy, ix], (window[0], window[2]), core, w, w_min, opts)
-    parts = run_tiles(job, f"interest-{name}", tasks, phase=f"interest points ({name}, 2/2)")
-    return InterestPoints.concatenate(list(parts.values()))
+            tasks[f"{iy}-{ix}"] = dask.delayed(_tile_candidates, pure=True)(blocks[iy, ix], (window[0], window[2]), core, w, opts)
+    parts = run_tiles(job, f"interest-candidates-{name}", tasks, phase=f"interest points ({name})")
+    total = sum(p[0] for p in parts.values())
+    count = sum(p[1] for p in parts.values())
+    if count == 0:
+        return InterestPoints.concatenate([])
+    w_min = opts.f * total / count
+    return InterestPoints.concatenate([_above(p[2], w_min) for p in parts.values()])
