@@ -273,6 +273,17 @@ def test_disk_full_keeps_the_job_for_a_rerun(work, tmp_path, client):
         subprocess.run(["umount", str(small)], check=True)
 
 
+def wait_past_correspondence(p: subprocess.Popen, job: Path, timeout: float = 240) -> None:
+    """Until the running job's manifest records a correspondence stage (dense matching follows)."""
+    manifest = job / "manifest.json"
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and p.poll() is None:
+        if manifest.exists() and "correspondence" in manifest.read_text():
+            break
+        time.sleep(0.2)
+    assert p.poll() is None, p.communicate()
+
+
 def test_ctrl_c_is_one_line_and_the_rerun_resumes(tmp_path, client):
     """SIGINT to the whole process group, as a terminal's Ctrl-C, mid dense matching."""
     src = synthetic_ortho((864, 864), seed=8)
@@ -282,13 +293,7 @@ def test_ctrl_c_is_one_line_and_the_rerun_resumes(tmp_path, client):
     args = [*GEOCODER[:-1], "register", "b.tif", "d.tif", "--out", "o.zarr", "--tile", 128]  # a local cluster of its own
     p = subprocess.Popen(list(map(str, args)), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          start_new_session=True)
-    manifest = tmp_path / ".o.zarr.geocoder-job" / "manifest.json"
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and p.poll() is None:
-        if manifest.exists() and "correspondence" in manifest.read_text():
-            break
-        time.sleep(0.2)
-    assert p.poll() is None, p.communicate()
+    wait_past_correspondence(p, tmp_path / ".o.zarr.geocoder-job")
     os.killpg(p.pid, signal.SIGINT)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130, err
@@ -337,13 +342,7 @@ def test_scheduler_lost_mid_job_keeps_the_job(tmp_path):
         p = subprocess.Popen([*GEOCODER, "register", "b.tif", "d.tif", "--out", "o.zarr", "--tile", "128", "--scheduler",
                               str(tmp_path / "cl" / "cluster.json")], cwd=tmp_path, stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
-        manifest = tmp_path / ".o.zarr.geocoder-job" / "manifest.json"
-        deadline = time.monotonic() + 240
-        while time.monotonic() < deadline and p.poll() is None:
-            if manifest.exists() and "correspondence" in manifest.read_text():
-                break
-            time.sleep(0.2)
-        assert p.poll() is None, p.communicate()
+        wait_past_correspondence(p, tmp_path / ".o.zarr.geocoder-job")
         os.kill(info["scheduler_pid"], signal.SIGKILL)
         _, err = p.communicate(timeout=180)
     finally:
