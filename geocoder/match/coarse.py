@@ -92,18 +92,37 @@ def unwrap_shift(a: np.ndarray, b: np.ndarray, dx: float, dy: float) -> tuple[fl
     return bx, by
 
 
-def refine_translation(base: np.ndarray, dist: np.ndarray, matrix: np.ndarray) -> tuple[np.ndarray, float]:
-    """Correct the translation of ``matrix`` (base -> dist) by phase correlation."""
+def refine_translation(base: np.ndarray, dist: np.ndarray, matrix: np.ndarray, *, local: bool = False) -> tuple[np.ndarray, float]:
+    """Correct the translation of ``matrix`` (base -> dist) by phase correlation.
+
+    ``local``: ``matrix`` already places the distorted image (a georeference, an earlier
+    refinement). Where its footprint covers less than half of ``base`` (a small scene on a
+    large reference), the correlation also runs on the footprint's bounding box grown by a
+    quarter of its size on every side, where the rest of the base adds no false peaks (shifts
+    up to about that quarter are found there); the higher of the two peaks wins, so a
+    georeference hundreds of pixels off is still corrected by the whole base.
+    """
     warped = warp_into(dist, matrix, base.shape)
     valid = np.isfinite(warped) & np.isfinite(base)
-    if valid.mean() < 0.05:
+    rows, cols = np.nonzero(valid.any(axis=1))[0], np.nonzero(valid.any(axis=0))[0]
+    windows = []
+    if valid.mean() >= 0.05:
+        windows.append((base, warped))
+    if local and rows.size >= 8 and cols.size >= 8 and (rows[-1] + 1 - rows[0]) * (cols[-1] + 1 - cols[0]) < 0.5 * base.size:
+        grow_r, grow_c = (rows[-1] - rows[0]) // 4 + 4, (cols[-1] - cols[0]) // 4 + 4
+        r0, r1 = max(rows[0] - grow_r, 0), min(rows[-1] + 1 + grow_r, base.shape[0])
+        c0, c1 = max(cols[0] - grow_c, 0), min(cols[-1] + 1 + grow_c, base.shape[1])
+        windows.append((base[r0:r1, c0:c1], warped[r0:r1, c0:c1]))
+    best = (0.0, 0.0, 0.0)
+    for a, b in windows:
+        shift = phase_correlation(a, b)
+        if np.isfinite(shift.dx) and shift.peak > best[0]:
+            best = (float(shift.peak), *unwrap_shift(a, b, shift.dx, shift.dy))
+    peak, dx, dy = best
+    if peak <= 0.0:
         return _h(matrix), 0.0
-    shift = phase_correlation(base, warped)
-    if not np.isfinite(shift.dx):
-        return _h(matrix), 0.0
-    dx, dy = unwrap_shift(base, warped, shift.dx, shift.dy)
     t = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
-    return _h(matrix) @ t, float(shift.peak)
+    return _h(matrix) @ t, peak
 
 
 def refine_affine(base: np.ndarray, dist: np.ndarray, matrix: np.ndarray, *, grid: int = 3, min_peak: float = MIN_PEAK) -> np.ndarray:
@@ -187,9 +206,9 @@ def align_overviews(
         hypotheses.append(("translation", np.eye(3)))
     best = None
     for name, start in hypotheses:
-        refined, peak = refine_translation(base, dist, start)
+        refined, peak = refine_translation(base, dist, start, local=name == "georeference")
         if peak >= min_peak:
-            again, peak2 = refine_translation(base, dist, refined)
+            again, peak2 = refine_translation(base, dist, refined, local=True)
             if peak2 >= peak:
                 refined, peak = again, peak2
             name += "+shift"
@@ -203,7 +222,7 @@ def align_overviews(
     if peak >= min_peak:
         for _ in range(2):
             matrix = refine_affine(base, dist, matrix, min_peak=min_peak)
-        _, peak_after = refine_translation(base, dist, matrix)
+        _, peak_after = refine_translation(base, dist, matrix, local=True)
         name += "+affine"
         peak = max(peak, peak_after)
     full = o @ matrix @ o_inv

@@ -9,6 +9,7 @@ import numpy as np
 import xarray as xr
 from rasterio.warp import transform as reproject_points
 
+from ..errors import GeocoderError
 from ..match.coarse import CoarseAlignment, align_overviews
 from ..scene import pixel_to_world, scene_transform, world_to_pixel
 
@@ -68,7 +69,19 @@ def coarse_alignment(
     dist_band = band if dist_band is None else dist_band
     largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
     factor = max(1, math.ceil(largest / max_size))
-    ob, od = dask.compute(overview(base.isel(band=band), factor), overview(dist.isel(band=dist_band), factor))
     if prior is None and use_georeference:
         prior = georeference_prior(base, dist)
-    return align_overviews(np.asarray(ob, dtype=np.float64), np.asarray(od, dtype=np.float64), factor, prior=prior)
+    # one graph: the overviews and the alignment on them run on the cluster, not the client
+    ob, od = (overview(s.isel(band=b), factor).data for s, b in ((base, band), (dist, dist_band)))
+    result = dask.delayed(_align, pure=True)(ob, od, factor, prior).compute()
+    if isinstance(result, GeocoderError):
+        raise result
+    return result
+
+
+def _align(ob: np.ndarray, od: np.ndarray, factor: int, prior: np.ndarray | None) -> CoarseAlignment | GeocoderError:
+    """The alignment, or the error that says why there is none (returned: not a failed task in the worker's log)."""
+    try:
+        return align_overviews(np.asarray(ob, dtype=np.float64), np.asarray(od, dtype=np.float64), factor, prior=prior)
+    except GeocoderError as exc:
+        return exc
