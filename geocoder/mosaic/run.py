@@ -15,11 +15,13 @@
 
 from __future__ import annotations
 
+import contextvars
 import json
 import logging
 import math
 import os
 import tempfile
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 
 import dask
@@ -33,6 +35,7 @@ from ..errors import GeocoderError, InputError
 from ..geometry import pixel_to_world, world_to_pixel
 from ..kernels.polynomial import fit_polymap
 from ..outputs import check_output, commit_output, product_attrs
+from ..pipeline.detect import interest_points
 from ..pipeline.job import Job, JobRun, fingerprint
 from ..pipeline.register import RegisterOptions, RegisterSummary, _ingest, _Timer, find_tiepoints, job_directory
 from ..runtime import dask_client
@@ -206,14 +209,24 @@ def mosaic(
         ref_reader = WindowReader(job.file("reference.zarr"))
         readers = [WindowReader(job.file(f"scene-{k}.zarr")) for k in range(len(opened))]
         shapes = [(s.sizes["y"], s.sizes["x"]) for s in opened]
+        threads = _threads(c)
+        with timer("interest points"):
+            names = ["reference", *(f"scene-{k}" for k in range(len(opened)))]
+            points = _concurrently(
+                lambda k: _points(job, names[k], ([ref] + opened)[k], ([ref_reader] + readers)[k], opts),
+                list(range(len(names))), "interest points (scenes)", threads)
+        ref_points, points = points[0], points[1:]
         control, ref_to, to_ref = [], {}, {}
         with timer("control points"):
-            for k, s in enumerate(opened):
-                try:
-                    tp, mapping, _ = _match(job, f"ref-{k}", key, ref, s, ref_reader, readers[k], opts)
-                except GeocoderError as exc:
-                    summary.left_out[str(k)] = f"not found on the reference ({exc})"
+            found = _concurrently(
+                lambda k: _match(job, f"ref-{k}", key, ref, opened[k], ref_reader, readers[k], opts,
+                                 points=(ref_points, points[k])),
+                list(range(len(opened))), "scenes on the reference", threads)
+            for k, result in enumerate(found):
+                if isinstance(result, GeocoderError):
+                    summary.left_out[str(k)] = f"not found on the reference ({result})"
                     continue
+                tp, mapping, _ = result
                 tp = tp.select(tp.inlier)
                 ref_to[k] = mapping
                 to_ref[k] = fit_polymap(tp.dist_x, tp.dist_y, tp.base_x, tp.base_y, order=order)
@@ -224,22 +237,23 @@ def mosaic(
         summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
         ties = []
         with timer("tie points"):
-            found = sorted(ref_to)
-            for a, i in enumerate(found):
-                for j in found[a + 1:]:
-                    if _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j]) < 0.05:
-                        continue
-                    try:
-                        prior = _affine_between(to_ref[i], ref_to[j], shapes[i])
-                        tp, _, _ = _match(job, f"pair-{i}-{j}", key, opened[i], opened[j], readers[i], readers[j], opts,
-                                          prior=prior)
-                    except GeocoderError as exc:
-                        summary.pairs.append({"i": i, "j": j, "ties": 0, "problem": str(exc)})
-                        continue
-                    tp = tp.select(tp.inlier)
-                    ties.append(Matches(i, j, np.column_stack([tp.base_x, tp.base_y]), np.column_stack([tp.dist_x, tp.dist_y]),
-                                        np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
-                    summary.pairs.append({"i": i, "j": j, "ties": len(tp)})
+            placed = sorted(ref_to)
+            pairs = [(i, j) for a, i in enumerate(placed) for j in placed[a + 1:]
+                     if _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j]) >= 0.05]
+            found = _concurrently(
+                lambda ij: _match(job, f"pair-{ij[0]}-{ij[1]}", key, opened[ij[0]], opened[ij[1]], readers[ij[0]],
+                                  readers[ij[1]], opts, prior=_affine_between(to_ref[ij[0]], ref_to[ij[1]], shapes[ij[0]]),
+                                  points=(points[ij[0]], points[ij[1]])),
+                pairs, "tie points (pairs)", threads)
+            for (i, j), result in zip(pairs, found):
+                if isinstance(result, GeocoderError):
+                    summary.pairs.append({"i": i, "j": j, "ties": 0, "problem": str(result)})
+                    continue
+                tp, _, _ = result
+                tp = tp.select(tp.inlier)
+                ties.append(Matches(i, j, np.column_stack([tp.base_x, tp.base_y]), np.column_stack([tp.dist_x, tp.dist_y]),
+                                    np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+                summary.pairs.append({"i": i, "j": j, "ties": len(tp)})
         ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
         for k in range(len(opened)):
             if not ok[k] and str(k) not in summary.left_out:
@@ -343,15 +357,61 @@ def _affine_between(i_to_ref, ref_to_j, shape, samples: int = 9) -> np.ndarray:
     return np.linalg.lstsq(design, np.column_stack([jx, jy]), rcond=None)[0].T
 
 
-def _match(job: Job, name: str, key: str, base, dist, base_reader, dist_reader, opts: RegisterOptions, prior=None):
-    """Tie points of one pair (the registration's stages), cached in a sub-job of ``job``."""
+def _match(job: Job, name: str, key: str, base, dist, base_reader, dist_reader, opts: RegisterOptions, prior=None,
+           points=None):
+    """Tie points of one pair (the registration's stages), cached in a sub-job of ``job``.
+
+    Returns ``(tie points, mapping, coarse alignment)``, or the :class:`GeocoderError` that
+    says why the pair could not be matched.
+    """
     sub = Job(job.file("pairs", name), key)
     try:
         summary = RegisterSummary(base=base.attrs.get("source", ""), distorted=dist.attrs.get("source", ""))
-        result = find_tiepoints(base, dist, base_reader, dist_reader, opts, summary, _Timer(summary), sub, prior=prior)
+        return find_tiepoints(base, dist, base_reader, dist_reader, opts, summary, _Timer(summary), sub, prior=prior,
+                              points=points)
+    except GeocoderError as exc:
+        return exc
     finally:
         sub.release()
-    return result
+
+
+def _points(job: Job, name: str, scene, reader, opts: RegisterOptions):
+    """Interest points of one scene, searched once for all its pairs (tiles kept by ``job``)."""
+    band = opts.band - 1
+    return interest_points(scene.data[band], opts.interest, job=job, name=name, reader=reader, band=band)
+
+
+def _threads(client) -> int:
+    """Pairs matched at once: enough small graphs in flight to keep every worker thread busy."""
+    return max(2, min(16, 2 * sum(client.nthreads().values())))
+
+
+def _concurrently(fn, items: list, phase: str, threads: int) -> list:
+    """``fn(item)`` for every item, ``threads`` at a time, results in the order of ``items``.
+
+    Every call submits its own small tile graphs; running several at once from client
+    threads keeps the cluster busy where one pair of small scenes has fewer tiles than there
+    are workers, and overlaps one pair's client-side work with the others' tasks. The
+    progress shows one unit per item (the calls' own phases are not shown).
+    """
+    def quiet(item):
+        with progress.reporting(False):
+            return fn(item)
+
+    bar = progress.current()
+    bar.phase(phase, len(items))
+    pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="geocoder-pairs")
+    try:
+        futures = [pool.submit(contextvars.copy_context().run, quiet, item) for item in items]
+        for _ in as_completed(futures):
+            bar.advance()
+        results = [f.result() for f in futures]
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    bar.close()
+    return results
 
 
 def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nbands: int):

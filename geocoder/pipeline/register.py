@@ -22,11 +22,12 @@ import xarray as xr
 
 from .. import progress, storage
 from ..errors import InputError, MatchingError
-from ..outputs import check_output, commit_output, product_attrs
+from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
+from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
@@ -158,11 +159,13 @@ def find_tiepoints(
     timer,
     job: Job | None = None,
     prior: np.ndarray | None = None,
+    points: tuple[InterestPoints, InterestPoints] | None = None,
 ) -> tuple[TiePoints, PolyMap, CoarseAlignment]:
     """Coarse alignment, interest points and correspondence passes; gathered tie points.
 
     ``prior`` (2x3 affine base pixel -> distorted pixel) replaces the georeference as the
-    start of the coarse alignment.
+    start of the coarse alignment; ``points`` are the interest points of both scenes when
+    they are known already (a scene in several pairs is searched once).
     """
     def cached(stage, make):
         return make() if job is None else job.cached(stage, make)
@@ -177,8 +180,11 @@ def find_tiepoints(
     dist_shape = (dist.sizes["y"], dist.sizes["x"])
     _check_overlap(coarse.mapping, base_shape, dist_shape, base.attrs["source"], dist.attrs["source"])
     with timer("interest points"):
-        bpts = interest_points(base.data[band], opts.interest, job=job, name="base", reader=base_reader, band=band)
-        dpts = interest_points(dist.data[dband], opts.interest, job=job, name="distorted", reader=dist_reader, band=dband)
+        if points is None:
+            bpts = interest_points(base.data[band], opts.interest, job=job, name="base", reader=base_reader, band=band)
+            dpts = interest_points(dist.data[dband], opts.interest, job=job, name="distorted", reader=dist_reader, band=dband)
+        else:
+            bpts, dpts = points
     summary.base_points, summary.distorted_points = len(bpts), len(dpts)
     for pts, scene in ((bpts, base), (dpts, dist)):
         if len(pts) < opts.min_tiepoints:
