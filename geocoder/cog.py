@@ -260,10 +260,10 @@ def _open_source(source, variable: str | None) -> tuple[xr.DataArray, str | None
         except Exception as exc:  # zarr raises many types; name the store and the cause
             raise InputError(where, f"cannot be read as a Zarr store ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from exc
     if isinstance(source, xr.Dataset):
-        images = [k for k, v in source.data_vars.items() if v.ndim in (2, 3) and v.dims[-2:] == ("y", "x")]
+        images = sorted(k for k, v in source.data_vars.items() if v.ndim in (2, 3) and v.dims[-2:] == ("y", "x"))
         if variable is None:
             if len(images) != 1:
-                raise InputError(name, f"has {len(images)} image variables; choose one of: {', '.join(images) or 'none'}")
+                raise InputError(name, f"has {len(images)} image variables; choose one with --var: {', '.join(images) or 'none'}")
             variable = images[0]
         if variable not in images:
             raise InputError(name, f"has no image variable '{variable}'; it has: {', '.join(images) or 'none'}")
@@ -303,6 +303,7 @@ def to_cog(
     *,
     variable: str | None = None,
     client=None,
+    scheduler: str | None = None,
     blocksize: int = 512,
     overviews: int | None = None,
     resampling: str | None = None,
@@ -324,8 +325,11 @@ def to_cog(
     variable : str, optional
         Variable of a Dataset or store; required when it has more than one image variable.
     client : distributed.Client, optional
-        Where the tiles are computed; default the current client, else
-        :func:`geocoder.runtime.dask_client` (``DASK_SCHEDULER_ADDRESS`` or a local cluster).
+        Where the tiles are computed; default the current client, else ``scheduler``.
+    scheduler : str, optional
+        Scheduler address or ``cluster.json`` when there is no client
+        (:func:`geocoder.runtime.dask_client`: default ``DASK_SCHEDULER_ADDRESS``, else a
+        local cluster started after the inputs were checked).
     blocksize : int
         Tile side in pixels (a multiple of 16, as TIFF requires).
     overviews : int, optional
@@ -411,7 +415,7 @@ def to_cog(
     tmp = storage.temporary_sibling(final)
     spill = storage.temporary_sibling(final) + ".tiles"
     try:
-        with dask_client(client) as c:
+        with dask_client(client, scheduler=scheduler) as c:
             where = _compute_tiles(c, tasks, spill)
         _assemble(tmp, spill, where, layout, blocksize=blocksize, bands=bands, dtype=dtype, spec_compression=compression,
                   predictor=predictor, nodata=nodata, main_tags=entries_main, bigtiff=bigtiff)

@@ -73,11 +73,15 @@ def _tiff_product(path: str) -> str | None:
     with open(path, "rb") as f:
         if f.read(4) not in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
             return None
+    import warnings
+
     import rasterio
 
     try:
-        with rasterio.open(path) as src:
-            product = src.tags().get(PRODUCT_ATTR)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(path) as src:
+                product = src.tags().get(PRODUCT_ATTR)
     except rasterio.errors.RasterioError:
         return None
     return product or None
