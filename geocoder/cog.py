@@ -443,7 +443,8 @@ def _tile_tasks(data: da.Array, n_levels: int, blocksize: int, spec: _TileSpec):
         if k:
             level = _next_level(level, blocksize, spec.average)
         height, width = level.shape[-2:]
-        blocks = (data if k == 0 else level).to_delayed()
+        # unoptimised: the levels share the source blocks, optimised once when computed together
+        blocks = (data if k == 0 else level).to_delayed(optimize_graph=False)
         blocks = blocks.reshape(blocks.shape[-2:])
         layout.append((height, width, *blocks.shape))
         s = _TileSpec(**{**spec.__dict__, "level": k})

@@ -240,3 +240,20 @@ def test_cli_export_unreferenced_store_warns(tmp_path, client):
         src = rasterio.open(tmp_path / "raw-cog.tif")
     with src:
         assert src.crs is None and src.overviews(1) == [2, 4]  # 300 -> 150 -> 75 px fits one 128 tile
+
+
+def test_graph_one_task_per_tile_and_source_blocks_read_once():
+    """Graph construction only: a task per tile of every level, each source block one task shared by all levels."""
+    import dask
+    import dask.array as da
+
+    from geocoder.cog import _tile_tasks, _TileSpec
+
+    source = da.zeros((2, ROWS, COLS), chunks=(2, 256, 256), dtype=np.float32)
+    spec = _TileSpec(256, "<f4", np.nan, np.nan, "deflate", 3, 0, True)
+    tasks, layout = _tile_tasks(source, 2, 256, spec)
+    assert layout == [(500, 700, 2, 3), (250, 350, 1, 2), (125, 175, 1, 1)]
+    assert sorted(tasks) == [(0, y, x) for y in range(2) for x in range(3)] + [(1, 0, 0), (1, 0, 1), (2, 0, 0)]
+    graph = dict(dask.delayed(list)(list(tasks.values())).__dask_graph__())
+    assert sum(1 for key in graph if "encode" in str(key)) == len(tasks)
+    assert sum(1 for key in graph if str(key).startswith(f"('{source.name}'")) == 6
