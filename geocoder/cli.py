@@ -1,4 +1,4 @@
-"""Command line: ``geocoder register | ingest | mosaic | simulate | adjust | demo | cluster up|down``.
+"""Command line: ``geocoder register | ingest | export | mosaic | simulate | adjust | demo | cluster up|down``.
 
 Every command calls the same library functions a notebook would; ``--scheduler`` (default
 ``DASK_SCHEDULER_ADDRESS``) chooses a running Dask cluster, otherwise a local one is started.
@@ -173,6 +173,52 @@ def ingest(src, out, tile, nodata, overwrite, scheduler):
     with dask_client(scheduler=scheduler) as c:
         scene = run(src, out, tile=tile, nodata=nodata, client=c, overwrite=overwrite)
     click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {tile}")
+
+
+@main.command()
+@click.argument("store")
+@click.option("--var", "variable", default=None,
+              help="Variable to export, e.g. registered, dx, status (default: the store's only image variable).")
+@click.option("--cog", "cog", required=True, help="Cloud-Optimized GeoTIFF to write (a local path; written whole or not at all).")
+@click.option("--blocksize", default=512, show_default=True, type=click.IntRange(min=16), help="Tile side in pixels (a multiple of 16).")
+@click.option("--overviews", default=None, type=click.IntRange(min=0),
+              help="Overview levels (default: halve until the smallest fits one tile).")
+@click.option("--resampling", default=None, type=click.Choice(["average", "nearest"]),
+              help="Overview resampling (default: average for floats, nearest for integers such as status).")
+@click.option("--compression", default="deflate", show_default=True, type=click.Choice(["deflate", "none"]))
+@click.option("--nodata", default=None, type=float, help="Nodata value written for NaN pixels (default: NaN for floats).")
+@overwrite_option
+@scheduler_option
+@_friendly
+def export(store, variable, cog, blocksize, overviews, resampling, compression, nodata, overwrite, scheduler):
+    """Write one variable of the Zarr STORE geocoder wrote as a Cloud-Optimized GeoTIFF, tile-parallel on Dask.
+
+    A store without a CRS is exported without georeference, with a warning.
+    """
+    import warnings
+
+    from .cog import to_cog
+    from .errors import GeocoderWarning
+
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", GeocoderWarning)
+        path = to_cog(store, cog, variable=variable, scheduler=scheduler, blocksize=blocksize, overviews=overviews,
+                      resampling=resampling, compression=compression, nodata=nodata, overwrite=overwrite)
+    for w in caught:
+        if issubclass(w.category, GeocoderWarning):
+            click.echo(f"geocoder: warning: {w.message}", err=True)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    import rasterio
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)  # warned about above, in our words
+        f = rasterio.open(path)
+    with f:
+        levels = len(f.overviews(1))
+        click.echo(f"wrote {cog}: {f.count} band(s) {f.dtypes[0]}, {f.height} x {f.width} px, tile {blocksize}, "
+                   f"{levels} overview(s), {path.stat().st_size / 1e6:.1f} MB in {time.perf_counter() - t0:.1f} s")
 
 
 @main.command()

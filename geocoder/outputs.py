@@ -50,7 +50,13 @@ def write_marker(directory: str, product: str) -> None:
 
 
 def product_of(location: str) -> str | None:
-    """The product geocoder wrote at ``location``, or None if geocoder did not write it."""
+    """The product geocoder wrote at ``location``, or None if geocoder did not write it.
+
+    A Zarr store or a directory carries it in its root attributes or :data:`MARKER_FILE`; a
+    GeoTIFF (:func:`geocoder.cog.to_cog`) in its GDAL metadata.
+    """
+    if not storage.is_url(location) and os.path.isfile(location):
+        return _tiff_product(location)
     for name, key in ((storage.ROOT_METADATA, "attributes"), (MARKER_FILE, None)):
         try:
             meta = json.loads(storage.read_bytes(storage.join(location, name)))
@@ -60,6 +66,25 @@ def product_of(location: str) -> str | None:
         if isinstance(attrs, dict) and isinstance(attrs.get(PRODUCT_ATTR), str):
             return attrs[PRODUCT_ATTR]
     return None
+
+
+def _tiff_product(path: str) -> str | None:
+    """The product named in a local GeoTIFF's GDAL metadata (None for any other file)."""
+    with open(path, "rb") as f:
+        if f.read(4) not in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
+            return None
+    import warnings
+
+    import rasterio
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(path) as src:
+                product = src.tags().get(PRODUCT_ATTR)
+    except rasterio.errors.RasterioError:
+        return None
+    return product or None
 
 
 def _empty_directory(location: str) -> bool:

@@ -201,7 +201,7 @@ def commit_store(tmp: str, final: str) -> None:
     """Make the finished store ``tmp`` appear at ``final``, replacing what was there.
 
     Callers decide whether ``final`` may be replaced (:func:`geocoder.outputs.commit_output`).
-    Local: renames (the old store stays whole, under a hidden name, until the new one has
+    Local: renames a store or a single file (the old store stays whole, under a hidden name, until the new one has
     taken its name). Object
     stores: the old store is unpublished first (its root metadata deleted), then removed;
     the new store's objects are copied on the server, the root metadata last, and ``tmp``
@@ -212,7 +212,7 @@ def commit_store(tmp: str, final: str) -> None:
             old = sibling(final, f".{split(final)[1]}.old-{uuid.uuid4().hex[:8]}")
             os.rename(final, old)
             os.rename(tmp, final)
-            shutil.rmtree(old, ignore_errors=True)
+            remove(old)
         else:
             os.rename(tmp, final)
         return
