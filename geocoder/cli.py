@@ -232,11 +232,12 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
 @click.option("--resampling", default="bilinear", show_default=True, type=click.Choice(["nearest", "bilinear", "cubic", "lanczos"]))
 @click.option("--balance/--no-balance", default=True, show_default=True,
               help="Radiometric balance: a gain and offset per scene and band from the grey values at control and tie points.")
+@click.option("--cog", default=None, help="Also write the mosaic as a Cloud-Optimized GeoTIFF (tile-parallel, with overviews).")
 @tile_option
 @overwrite_option
 @scheduler_option
 @_friendly
-def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, balance, tile, overwrite, scheduler):
+def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, balance, cog, tile, overwrite, scheduler):
     """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
     from .mosaic import MosaicSummary
     from .mosaic import mosaic as run
@@ -253,12 +254,12 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, b
             raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
     t0 = time.perf_counter()
     ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
-             feather=feather, resampling=resampling, balance=balance, scheduler=scheduler, overwrite=overwrite)
+             feather=feather, resampling=resampling, balance=balance, scheduler=scheduler, overwrite=overwrite, cog=cog)
     import json
 
     for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():
         click.echo(line)
-    click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
+    click.echo(f"wrote {out}{f' and {cog}' if cog else ''} in {time.perf_counter() - t0:.1f} s")
 
 
 @main.command()

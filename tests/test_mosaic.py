@@ -111,10 +111,22 @@ def test_cli_mosaic_and_blend_kernel(block, client, tmp_path):
 
     r = subprocess.run([sys.executable, "-m", "geocoder.cli", "-q", "mosaic", *map(str, paths), "--reference", str(d / "ortho.tif"),
                         "--out", str(tmp_path / "m.zarr"), "--tile", "128", "--control-scenes", "0,3",
-                        "--scheduler", client.scheduler.address], capture_output=True, text=True, timeout=600)
+                        "--cog", str(tmp_path / "m.tif"), "--scheduler", client.scheduler.address],
+                       capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     assert "overlapping pairs: 6" in r.stdout and "control points per scene" in r.stdout
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.zarr"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.tif", "m.zarr"]
+    # the COG: the store's pixels, CRS and transform, overviews, valid for rio-cogeo
+    import rasterio
+    import xarray as xr
+    from rio_cogeo.cogeo import cog_validate
+
+    store = xr.open_zarr(tmp_path / "m.zarr", decode_coords="all", consolidated=False)
+    with rasterio.open(tmp_path / "m.tif") as f:
+        assert f.crs == store.rio.crs and f.transform == store.rio.transform()
+        np.testing.assert_array_equal(f.read(), store.mosaic.values)
+        assert f.overviews(1)
+    assert cog_validate(str(tmp_path / "m.tif"), strict=True)[0]
     # the blend: weights sum to one where covered, the lowest score is the source, feathered across the seam
     scores = np.array([[[0.2, 0.50, 0.52, 0.9]], [[0.9, 0.52, 0.50, np.nan]]])
     values = np.stack([np.full((1, 1, 4), 10.0), np.full((1, 1, 4), 20.0)])

@@ -31,6 +31,7 @@ import xarray as xr
 from affine import Affine
 
 from .. import progress
+from ..cog import to_cog
 from ..errors import GeocoderError, InputError
 from ..geometry import pixel_to_world, world_to_pixel
 from ..kernels.polynomial import fit_polymap
@@ -140,6 +141,7 @@ def mosaic(
     client=None,
     scheduler: str | None = None,
     overwrite: bool = False,
+    cog: str | os.PathLike | None = None,
     show_progress=None,
 ) -> xr.Dataset:
     """Adjust overlapping scenes as one block on a reference and write one seamless mosaic.
@@ -170,7 +172,10 @@ def mosaic(
     client, scheduler
         Where to run (as :func:`geocoder.register`).
     overwrite : bool
-        Replace an existing ``out`` that geocoder wrote.
+        Replace an existing ``out`` (and ``cog``) that geocoder wrote.
+    cog : str or PathLike, optional
+        Also write the mosaic as a Cloud-Optimized GeoTIFF (tile-parallel, with overviews;
+        :func:`geocoder.cog.to_cog`).
 
     Returns
     -------
@@ -188,6 +193,8 @@ def mosaic(
     opts.validate()
     if out is not None:
         out = check_output(out, inputs=(*scenes, reference), overwrite=overwrite)
+    if cog is not None:  # refused now, not after the job
+        check_output(cog, inputs=(*scenes, reference, *([out] if out is not None else [])), overwrite=overwrite)
     ref = open_scene(reference, chunks=tile)
     opened = [open_scene(s, chunks=tile) for s in scenes]
     bands = {s.sizes["band"] for s in opened}
@@ -300,6 +307,10 @@ def mosaic(
         import zarr
 
         zarr.open_group(store, mode="r+").attrs.update(_attrs(summary, block, models, order, gains))
+        if cog is not None:
+            with timer("cog"):
+                to_cog(store, cog, variable="mosaic", client=c, blocksize=tile if tile % 16 == 0 else 512,
+                       overwrite=overwrite)
         if out is None:
             result_ds = xr.open_zarr(store, decode_coords="all", consolidated=False).load()
             return result_ds
