@@ -19,7 +19,8 @@ log = logging.getLogger("geocoder")
 
 
 def _setup_logging(verbose: int, quiet: bool) -> None:
-    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    # the progress display names every stage: log lines only with -v (stages, rounds) and -vv
+    level = logging.WARNING if quiet or verbose == 0 else (logging.INFO if verbose == 1 else logging.DEBUG)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
     import distributed  # noqa: F401  (its import configures its loggers; override them after it)
 
@@ -95,7 +96,7 @@ overwrite_option = click.option("--overwrite", is_flag=True,
 
 
 @click.group(cls=_Main, context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("-v", "--verbose", count=True, help="More log output (-vv for Dask's too).")
+@click.option("-v", "--verbose", count=True, help="Log lines of the stages (-vv: debugging output, Dask's logs too).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
 @click.version_option(package_name="geocoder")
 @click.pass_context

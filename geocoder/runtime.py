@@ -90,6 +90,24 @@ class IgnoreInterrupts(WorkerPlugin):
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+class QuietRawFrames(WorkerPlugin):
+    """Worker plugin: rasterio's ``NotGeoreferencedWarning`` is not shown.
+
+    geocoder reads a file without georeference as a raw scanner frame on purpose (the scene
+    says so in ``attrs["georeferenced"]``); the warning, printed by every worker that reads
+    such a file, told the user nothing. Only that category is filtered.
+    """
+
+    name = "geocoder-quiet-raw-frames"
+
+    def setup(self, worker) -> None:
+        import warnings
+
+        from rasterio.errors import NotGeoreferencedWarning
+
+        warnings.filterwarnings("ignore", category=NotGeoreferencedWarning)
+
+
 def connect(scheduler: str, *, timeout: float = 10) -> Client:
     """A client of a running cluster.
 
@@ -175,12 +193,14 @@ def dask_client(client: Client | None = None, scheduler: str | None = None, n_wo
     address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
     if address:
         with connect(address) as c, c.as_current():
-            log.info("Dask scheduler %s; dashboard %s", c.scheduler.address, c.dashboard_link)
+            c.register_plugin(QuietRawFrames())
+            log.debug("Dask scheduler %s; dashboard %s", c.scheduler.address, c.dashboard_link)
             yield c
         return
     with local_cluster(n_workers) as cluster, Client(cluster) as c, c.as_current():
         c.register_plugin(IgnoreInterrupts())
-        log.info("local Dask cluster with %d workers; dashboard %s", len(cluster.workers), c.dashboard_link)
+        c.register_plugin(QuietRawFrames())
+        log.debug("local Dask cluster with %d workers; dashboard %s", len(cluster.workers), c.dashboard_link)
         yield c
 
 

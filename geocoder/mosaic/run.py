@@ -210,6 +210,7 @@ def mosaic(
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
             dask_client(client, scheduler) as c:
         run.connected = c.scheduler.address
+        progress.current().message(f"Dask dashboard: {c.dashboard_link}")
         with timer("ingest"):
             ref = _ingest(job, "reference", ref, tile, c)
             opened = [_ingest(job, f"scene-{k}", s, tile, c) for k, s in enumerate(opened)]
