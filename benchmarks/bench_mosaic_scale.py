@@ -90,7 +90,7 @@ def main() -> None:
         write_geotiff(paths[-1], render(ortho, s, seed=k), **georef)
     with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, Client(cl) as c:
         t0 = time.perf_counter()
-        ds = mosaic(paths, reference=work / "ortho.tif", out=work / "mosaic.zarr", tile=args.tile, client=c)
+        ds = mosaic(paths, reference=work / "ortho.tif", out=work / "mosaic.zarr", tile=args.tile, client=c, show_progress=True)
         wall = time.perf_counter() - t0
         peaks = c.run(_peak_rss_mib)
     placed = [paths.index(Path(q)) for q in json.loads(ds.attrs["scenes"])]

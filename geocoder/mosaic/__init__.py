@@ -1,5 +1,5 @@
 """Mosaics of many overlapping scenes: block adjustment on a reference, one seamless output grid."""
 
-from .run import MosaicSummary, load_models, mosaic
+from .run import MosaicSummary, load_models, mosaic, scene_positions
 
-__all__ = ["MosaicSummary", "load_models", "mosaic"]
+__all__ = ["MosaicSummary", "load_models", "mosaic", "scene_positions"]

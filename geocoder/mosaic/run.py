@@ -41,6 +41,7 @@ from ..pipeline.job import Job, JobRun, fingerprint
 from ..pipeline.register import RegisterOptions, RegisterSummary, _ingest, _Timer, find_tiepoints, job_directory
 from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
+from ..status import Status
 from ..tiles import TileGrid
 from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
@@ -99,21 +100,51 @@ def _overlap(i_shape, i_to_ref, ref_to_j, j_shape, samples: int = 16) -> float:
     return float(inside.mean())
 
 
-def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
-                 shapes: list, feather_px: float, method: str, balance: np.ndarray) -> int:
-    """Compute and write one output tile; returns the number of pixels covered."""
+def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int], located: dict | None,
+              origin: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Position in one scene of every pixel of an output window: its adjusted model, or its
+    dense field where that matched or filled the pixel.
+
+    ``origin``: the output grid's pixel (0, 0) in reference pixels (``col, row``).
+    """
     import zarr
 
     r0, r1, c0, c1 = window
     ys, xs = np.mgrid[r0:r1, c0:c1].astype(np.float64)
     ex, ny = pixel_to_world(transform, xs, ys)
-    ground = np.column_stack([ex.ravel(), ny.ravel(), np.zeros(ex.size)])
+    xy = model.project(params, np.column_stack([ex.ravel(), ny.ravel(), np.zeros(ex.size)]))
+    x, y = xy[:, 0].reshape(xs.shape), xy[:, 1].reshape(xs.shape)
+    if located is None:
+        return x, y
+    # the window in the field's frame (reference pixels, offset by the field's origin)
+    fr0, fc0 = r0 + origin[1] - located["row0"], c0 + origin[0] - located["col0"]
+    a0, a1 = max(fr0, 0), min(fr0 + (r1 - r0), located["shape"][0])
+    b0, b1 = max(fc0, 0), min(fc0 + (c1 - c0), located["shape"][1])
+    if a0 >= a1 or b0 >= b1:
+        return x, y
+    g = zarr.open_group(located["store"], mode="r")
+    dx, dy, status = (np.asarray(g[n][a0:a1, b0:b1]) for n in ("dx", "dy", "status"))
+    good = (status == Status.MATCHED) | (status == Status.FILLED)
+    sl = (slice(a0 - fr0, a1 - fr0), slice(b0 - fc0, b1 - fc0))
+    rx = np.arange(b0, b1)[None, :] + located["col0"]  # reference pixel of each field sample
+    ry = np.arange(a0, a1)[:, None] + located["row0"]
+    x[sl] = np.where(good, rx + dx, x[sl])
+    y[sl] = np.where(good, ry + dy, y[sl])
+    return x, y
+
+
+def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
+                 shapes: list, feather_px: float, method: str, balance: np.ndarray, fields: list,
+                 origin: tuple[int, int]) -> int:
+    """Compute and write one output tile; returns the number of pixels covered."""
+    import zarr
+
+    r0, r1, c0, c1 = window
     nb = readers[0].shape[0] if readers else 1
     values = np.full((len(models), nb, r1 - r0, c1 - c0), np.nan, dtype=np.float32)
     scores = np.full((len(models), r1 - r0, c1 - c0), np.nan)
-    for k, ((model, params), reader, shape) in enumerate(zip(models, readers, shapes)):
-        xy = model.project(params, ground)
-        x, y = xy[:, 0].reshape(xs.shape), xy[:, 1].reshape(xs.shape)
+    for k, ((model, params), reader, shape, located) in enumerate(zip(models, readers, shapes, fields)):
+        x, y = _scene_xy(model, params, transform, window, located, origin)
         s = centre_score(x, y, shape)
         if not np.any(s <= 1.0):
             continue
@@ -142,6 +173,7 @@ def mosaic(
     scheduler: str | None = None,
     overwrite: bool = False,
     cog: str | os.PathLike | None = None,
+    dense: bool = False,
     show_progress=None,
 ) -> xr.Dataset:
     """Adjust overlapping scenes as one block on a reference and write one seamless mosaic.
@@ -176,6 +208,13 @@ def mosaic(
     cog : str or PathLike, optional
         Also write the mosaic as a Cloud-Optimized GeoTIFF (tile-parallel, with overviews;
         :func:`geocoder.cog.to_cog`).
+    dense : bool
+        Dense refinement: every control scene is matched pixel by pixel against the reference
+        (the registration's dense stage, seeded by its control points, predicted by its
+        adjusted model); where a pixel is matched or filled, the mosaic takes it from there
+        instead of from the model (the line-to-line turbulence of airborne scanners, which
+        no polynomial follows). The fields are kept in the store (group ``dense/<n>``);
+        scenes without control keep their model.
 
     Returns
     -------
@@ -205,7 +244,7 @@ def mosaic(
     timer = _Timer(summary)  # type: ignore[arg-type]
     allowed = set(range(len(scenes)) if control_scenes is None else control_scenes)
     key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile,
-                      control=sorted(allowed), feather=feather, resampling=resampling, balance=balance)
+                      control=sorted(allowed), feather=feather, resampling=resampling, balance=balance, dense=dense)
     job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
             dask_client(client, scheduler) as c:
@@ -224,7 +263,7 @@ def mosaic(
                 lambda k: _points(job, names[k], ([ref] + opened)[k], ([ref_reader] + readers)[k], opts),
                 list(range(len(names))), "interest points (scenes)", threads)
         ref_points, points = points[0], points[1:]
-        control, ref_to, to_ref = [], {}, {}
+        control, ref_to, to_ref, ref_tp = [], {}, {}, {}
         with timer("control points"):
             found = _concurrently(
                 lambda k: _match(job, f"ref-{k}", key, ref, opened[k], ref_reader, readers[k], opts,
@@ -236,6 +275,7 @@ def mosaic(
                     continue
                 tp, mapping, _ = result
                 tp = tp.select(tp.inlier)
+                ref_tp[k] = tp
                 ref_to[k] = mapping
                 to_ref[k] = fit_polymap(tp.dist_x, tp.dist_y, tp.base_x, tp.base_y, order=order)
                 if k in allowed:
@@ -296,18 +336,34 @@ def mosaic(
         ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], tile, opened[0].sizes["band"])
         summary.shape = (ds.sizes["y"], ds.sizes["x"])
         ds.attrs.update(_attrs(summary, block, models, order, gains))
+        store = job.file("output.zarr")
+        if not job.done("output-created"):
+            ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
+            job.save("output-created")
+        fields: list = [None] * len(block)
+        if dense:
+            with timer("dense refinement"):
+                todo = [n for n, k in enumerate(block) if k in allowed and k in ref_tp]
+                done = _concurrently(
+                    lambda n: _refine(job, key, store, n, ref, ref_reader, readers[block[n]], models[n], ref_tp[block[n]],
+                                      to_ref[block[n]], shapes[block[n]], transform, opts),
+                    todo, "dense refinement (scenes)", threads)
+                for n, f in zip(todo, done):
+                    fields[n] = f
+        origin = tuple(int(round(v)) for v in ~transform * (out_transform.c, out_transform.f))  # output (0, 0) in reference pixels
         with timer("mosaic"):
-            store = job.file("output.zarr")
-            if not job.done("output-created"):
-                ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
-                job.save("output-created")
             tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
                 store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
-                [shapes[k] for k in block], feather, resampling, gains) for t in grid}
+                [shapes[k] for k in block], feather, resampling, gains, fields, origin) for t in grid}
             job.run_tiles("mosaic", tasks, phase="mosaic tiles")
         import zarr
 
-        zarr.open_group(store, mode="r+").attrs.update(_attrs(summary, block, models, order, gains))
+        zarr.open_group(store, mode="r+").attrs.update({
+            **_attrs(summary, block, models, order, gains),
+            "dense_fields": json.dumps([None if f is None else {"group": f"dense/{n}", "row0": f["row0"], "col0": f["col0"],
+                                                                "shape": list(f["shape"])} for n, f in enumerate(fields)]),
+            "reference_origin": json.dumps(list(origin)),
+        })
         if cog is not None:
             with timer("cog"):
                 to_cog(store, cog, variable="mosaic", client=c, blocksize=tile if tile % 16 == 0 else 512,
@@ -385,6 +441,122 @@ def _match(job: Job, name: str, key: str, base, dist, base_reader, dist_reader, 
         return exc
     finally:
         sub.release()
+
+
+def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, model, tp, to_ref, shape,
+            transform: Affine, opts: RegisterOptions) -> dict | None:
+    """Dense field of block scene ``n`` against the reference, written to group ``dense/<n>`` of
+    ``store`` on the reference tiles its footprint touches; its location (see :func:`_scene_xy`)."""
+    from ..pipeline.dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
+    from ..pipeline.resample import polynomial_displacement
+    from ..quality.postfilter import PostFilterOptions
+
+    sub = Job(job.file("dense", f"scene-{n}"), key)
+    try:
+        h, w = shape
+        # reference pixel -> scene pixel as the adjusted model says, fitted over the footprint
+        sy, sx = np.mgrid[0 : h - 1 : 33j, 0 : w - 1 : 33j]
+        rx, ry = to_ref(sx.ravel(), sy.ravel())
+        ex, ny = pixel_to_world(transform, rx, ry)
+        xy = model[0].project(model[1], np.column_stack([ex, ny, np.zeros(ex.size)]))
+        mapping = fit_polymap(rx, ry, xy[:, 0], xy[:, 1], order=3, robust=False)
+        chunks = ref.data.chunks[1:]
+        grid = TileGrid.from_chunks(chunks)
+        result = grow_tiles(ref_reader, reader, grid, seeds_from_tiepoints(tp, mapping), mapping, sub.file("state.zarr"),
+                            band=opts.band - 1, dist_band=opts.band - 1, opts=DenseOptions(), job=sub)
+        pdx, pdy = polynomial_displacement(mapping, chunks)
+        field_ = dense_field(result, (pdx, pdy), PostFilterOptions())
+        # the whole tiles of the reference that the footprint touches
+        edges_r, edges_c = np.r_[0, np.cumsum(grid.rows)], np.r_[0, np.cumsum(grid.cols)]
+        ia = max(int(np.searchsorted(edges_r, ry.min(), side="right")) - 1, 0)
+        ib = min(int(np.searchsorted(edges_r, ry.max(), side="right")), len(grid.rows))
+        ja = max(int(np.searchsorted(edges_c, rx.min(), side="right")) - 1, 0)
+        jb = min(int(np.searchsorted(edges_c, rx.max(), side="right")), len(grid.cols))
+        r0, r1, c0, c1 = int(edges_r[ia]), int(edges_r[ib]), int(edges_c[ja]), int(edges_c[jb])
+        if r0 >= r1 or c0 >= c1:
+            return None
+        group = f"dense/{n}"
+        if not sub.done("field"):
+            rows = (tuple(grid.rows[ia:ib]), (c1 - c0,))  # whole rows of the footprint: carried along them
+            parts = [a[r0:r1, c0:c1].rechunk(rows) for a in (field_["dx"], field_["dy"], field_["status"], pdx, pdy)]
+            carried = da.map_blocks(carry_along_rows, *parts, max_px=CARRY_PX, new_axis=0, chunks=((3,), *rows),
+                                    dtype=np.float32)
+            # rows with no match at all (the template's margin at a scene's top and bottom): from the next rows
+            carried = da.map_overlap(_carry_along_columns, carried, *parts[3:],
+                                     depth=[{0: 0, 1: CARRY_ROWS, 2: 0}, {0: CARRY_ROWS, 1: 0}, {0: CARRY_ROWS, 1: 0}],
+                                     boundary="none", dtype=np.float32, max_rows=CARRY_ROWS)
+            part = xr.Dataset(
+                {"dx": (("y", "x"), carried[0]), "dy": (("y", "x"), carried[1]),
+                 "status": (("y", "x"), carried[2].astype(np.uint8))},
+                attrs={"row0": r0, "col0": c0, "long_name": "displacement reference pixel -> scene pixel",
+                       "filled": f"matched, or filled along the row (short holes interpolated by the post-filter, "
+                                 f"other pixels within {CARRY_PX} px of a match carried from the nearest one)"})
+            part.to_zarr(store, group=group, mode="w", zarr_format=3, consolidated=False)
+            sub.save("field")
+        return {"store": f"{store}/{group}", "row0": r0, "col0": c0, "shape": (r1 - r0, c1 - c0)}
+    finally:
+        sub.release()
+
+
+#: Largest distance (px) along a row over which a dense correction is carried from the nearest match.
+CARRY_PX = 64
+
+
+def carry_along_rows(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.ndarray, pdy: np.ndarray, *,
+                     max_px: int = CARRY_PX) -> np.ndarray:
+    """Unmatched pixels take the correction (field minus model) of the nearest match in their row.
+
+    The line-to-line turbulence of a line scanner shifts a whole scan line; the model knows
+    the rest of the geometry. So where the dense field has no match (low texture, the
+    template's margin along the scene's edges), the correction of the nearest matched or
+    filled pixel of the same row, at most ``max_px`` away, is added to the model's
+    displacement ``(pdx, pdy)``; those pixels become ``FILLED``. Returns ``(3, h, w)``:
+    ``dx, dy, status``.
+    """
+    good = (status == Status.MATCHED) | (status == Status.FILLED)
+    h, w = good.shape
+    col = np.broadcast_to(np.arange(w), (h, w))
+    left = np.maximum.accumulate(np.where(good, col, -1), axis=1)
+    right = np.minimum.accumulate(np.where(good, col, 2 * w)[:, ::-1], axis=1)[:, ::-1]
+    dl = np.where(left >= 0, col - left, 2 * w)
+    dr = np.where(right < w, right - col, 2 * w)
+    near = np.where(dl <= dr, left, right)
+    carry = ~good & (np.minimum(dl, dr) <= max_px)
+    src = np.clip(near, 0, w - 1)
+    cx = np.take_along_axis(np.asarray(dx - pdx), src, axis=1)
+    cy = np.take_along_axis(np.asarray(dy - pdy), src, axis=1)
+    out_dx = np.where(carry, pdx + cx, dx)
+    out_dy = np.where(carry, pdy + cy, dy)
+    out_status = np.where(carry, Status.FILLED, status)
+    return np.stack([out_dx, out_dy, out_status]).astype(np.float32)
+
+
+#: Largest distance (rows) over which a correction is carried into a row without any match.
+CARRY_ROWS = 8
+
+
+def _carry_along_columns(carried: np.ndarray, pdx: np.ndarray, pdy: np.ndarray, *, max_rows: int) -> np.ndarray:
+    """:func:`carry_along_rows` across rows: pixels still without a correction take the one of
+    the nearest row that has one (same column, at most ``max_rows`` away)."""
+    dx, dy, status = carried
+    t = carry_along_rows(dx.T, dy.T, status.T, pdx.T, pdy.T, max_px=max_rows)
+    return np.transpose(t, (0, 2, 1))
+
+
+def scene_positions(ds: xr.Dataset, store: str | os.PathLike) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Where every output pixel lies in each block scene (``attrs["scenes"]`` order): its model,
+    or its dense field where the mosaic was refined (the positions the mosaic sampled)."""
+    models = load_models(ds)
+    fields = json.loads(ds.attrs.get("dense_fields", "null")) or [None] * len(models)
+    transform = ds.rio.transform()
+    ref = json.loads(ds.attrs.get("reference_origin", "[0, 0]"))
+    window = (0, ds.sizes["y"], 0, ds.sizes["x"])
+    out = []
+    for (model, params), f in zip(models, fields):
+        if f is not None:
+            f = {**f, "store": f"{os.fspath(store)}/{f['group']}"}
+        out.append(_scene_xy(model, params, transform, window, f, tuple(ref)))
+    return out
 
 
 def _points(job: Job, name: str, scene, reader, opts: RegisterOptions):
@@ -482,4 +654,4 @@ def world_grid(ds: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
     return np.meshgrid(ds.x.values, ds.y.values)
 
 
-__all__ = ["MosaicSummary", "load_models", "mosaic", "world_grid"]
+__all__ = ["MosaicSummary", "load_models", "mosaic", "scene_positions", "world_grid"]

@@ -12,7 +12,8 @@ from ..geometry import world_to_pixel
 
 
 def mosaic_errors(ds: xr.Dataset, truths: Sequence[Callable], shapes: Sequence[tuple[int, int]],
-                  truth_transform: Affine) -> tuple[np.ndarray, np.ndarray]:
+                  truth_transform: Affine, positions: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Geometric errors of a mosaic, in output pixels.
 
     Parameters
@@ -26,6 +27,10 @@ def mosaic_errors(ds: xr.Dataset, truths: Sequence[Callable], shapes: Sequence[t
         The scenes' sizes.
     truth_transform : Affine
         Transform of the grid the truths map into.
+    positions : sequence of (x, y) arrays, optional
+        Where the mosaic sampled every output pixel in each scene
+        (:func:`geocoder.mosaic.scene_positions`, needed for a densely refined mosaic);
+        default: the scenes' adjusted models.
 
     Returns
     -------
@@ -40,17 +45,29 @@ def mosaic_errors(ds: xr.Dataset, truths: Sequence[Callable], shapes: Sequence[t
     ex, ny = np.meshgrid(ds.x.values, ds.y.values)
     gx, gy = world_to_pixel(truth_transform, ex, ny)
     ground = np.column_stack([ex.ravel(), ny.ravel(), np.zeros(ex.size)])
-    pos = []
-    for (model, params), truth, (h, w) in zip(models, truths, shapes):
-        xy = model.project(params, ground)
-        x, y = xy[:, 0].reshape(ex.shape), xy[:, 1].reshape(ex.shape)
-        inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
-        tx, ty = truth(x, y)
-        pos.append(np.where(inside, tx, np.nan) + 1j * np.where(inside, ty, np.nan))
-    src = ds.source.values
+    # per scene, only the pixels it sees (flat indices, true positions): memory grows with the
+    # scenes' areas, not with their number times the mosaic's
+    seen = []
+    for n, ((model, params), truth, (h, w)) in enumerate(zip(models, truths, shapes)):
+        if positions is not None:
+            x, y = positions[n]
+        else:
+            xy = model.project(params, ground)
+            x, y = xy[:, 0].reshape(ex.shape), xy[:, 1].reshape(ex.shape)
+        idx = np.flatnonzero((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1))
+        tx, ty = truth(x.ravel()[idx], y.ravel()[idx])
+        seen.append((idx, tx + 1j * ty))
+    src = ds.source.values.ravel()
     own = np.full(src.shape, np.nan)
-    for n, p in enumerate(pos):
-        m = src == n
-        own[m] = np.abs(p[m] - (gx[m] + 1j * gy[m]))
-    seams = [np.abs(pos[i] - pos[j]) for i in range(len(pos)) for j in range(i + 1, len(pos))]
-    return own, np.concatenate([s[np.isfinite(s)] for s in seams]) if seams else np.zeros(0)
+    target = gx.ravel() + 1j * gy.ravel()
+    for n, (idx, p) in enumerate(seen):
+        m = src[idx] == n
+        own[idx[m]] = np.abs(p[m] - target[idx[m]])
+    own = own.reshape(ex.shape)
+    seams = []
+    for i in range(len(seen)):
+        for j in range(i + 1, len(seen)):
+            _, a, b = np.intersect1d(seen[i][0], seen[j][0], assume_unique=True, return_indices=True)
+            if a.size:
+                seams.append(np.abs(seen[i][1][a] - seen[j][1][b]))
+    return own, np.concatenate(seams) if seams else np.zeros(0)

@@ -27,6 +27,8 @@ class BlockScene:
     quadratic_px: float
     gain: float
     offset: float
+    turbulence_px: float = 0.0
+    turbulence_seed: int = 0
 
     def to_ortho(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``T``: scene pixel -> ortho pixel (pixel centres at integers)."""
@@ -36,7 +38,22 @@ class BlockScene:
         q = self.quadratic_px / half**2
         ox = self.col0 + half + self.scale * (np.cos(a) * u - np.sin(a) * v) + q * u * v
         oy = self.row0 + half + self.scale * (np.sin(a) * u + np.cos(a) * v) + q * u * u
+        if self.turbulence_px:
+            tx, ty = self.turbulence(np.asarray(y, dtype=np.float64))
+            ox, oy = ox + tx, oy + ty
         return ox, oy
+
+    def turbulence(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Scan-line turbulence (ortho px) of scene row ``y``: an airborne line scanner's roll
+        and pitch, shared by the whole line and changing over tens of lines (three sinusoids
+        per axis of periods 15-80 lines and random phases, peak ``turbulence_px``)."""
+        rng = np.random.default_rng(self.turbulence_seed)
+        periods = rng.uniform(15.0, 80.0, (2, 3))
+        phases = rng.uniform(0.0, 2 * np.pi, (2, 3))
+        weights = rng.uniform(0.5, 1.0, (2, 3))
+        weights *= self.turbulence_px / weights.sum(axis=1, keepdims=True)
+        t = [sum(w * np.sin(2 * np.pi * y / p + f) for w, p, f in zip(weights[k], periods[k], phases[k])) for k in (0, 1)]
+        return t[0], t[1]
 
 
 def block_layout(rows: int, cols: int, *, size: int, overlap: tuple[float, float] = (0.2, 0.6),
