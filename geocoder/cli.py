@@ -234,11 +234,13 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
 @click.option("--balance/--no-balance", default=True, show_default=True,
               help="Radiometric balance: a gain and offset per scene and band from the grey values at control and tie points.")
 @click.option("--cog", default=None, help="Also write the mosaic as a Cloud-Optimized GeoTIFF (tile-parallel, with overviews).")
+@click.option("--dense/--no-dense", default=False, show_default=True,
+              help="Refine every control scene pixel by pixel against the reference (scan-line turbulence).")
 @tile_option
 @overwrite_option
 @scheduler_option
 @_friendly
-def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, balance, cog, tile, overwrite, scheduler):
+def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, balance, cog, dense, tile, overwrite, scheduler):
     """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
     from .mosaic import MosaicSummary
     from .mosaic import mosaic as run
@@ -255,7 +257,7 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, b
             raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
     t0 = time.perf_counter()
     ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
-             feather=feather, resampling=resampling, balance=balance, scheduler=scheduler, overwrite=overwrite, cog=cog)
+             feather=feather, resampling=resampling, balance=balance, scheduler=scheduler, overwrite=overwrite, cog=cog, dense=dense)
     import json
 
     for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():

@@ -135,23 +135,32 @@ def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int
 
 def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
                  shapes: list, feather_px: float, method: str, balance: np.ndarray, fields: list,
-                 origin: tuple[int, int]) -> int:
-    """Compute and write one output tile; returns the number of pixels covered."""
+                 origin: tuple[int, int], boxes: np.ndarray) -> int:
+    """Compute and write one output tile; returns the number of pixels covered.
+
+    Only the scenes whose footprint box (``boxes``: ``row0, row1, col0, col1`` in output
+    pixels, with a margin) meets the tile are sampled: time and memory per tile depend on how
+    many scenes overlap it, not on the size of the block.
+    """
     import zarr
 
     r0, r1, c0, c1 = window
+    near = np.flatnonzero((boxes[:, 0] < r1) & (boxes[:, 1] > r0) & (boxes[:, 2] < c1) & (boxes[:, 3] > c0))
     nb = readers[0].shape[0] if readers else 1
-    values = np.full((len(models), nb, r1 - r0, c1 - c0), np.nan, dtype=np.float32)
-    scores = np.full((len(models), r1 - r0, c1 - c0), np.nan)
-    for k, ((model, params), reader, shape, located) in enumerate(zip(models, readers, shapes, fields)):
-        x, y = _scene_xy(model, params, transform, window, located, origin)
+    values = np.full((near.size, nb, r1 - r0, c1 - c0), np.nan, dtype=np.float32)
+    scores = np.full((near.size, r1 - r0, c1 - c0), np.nan)
+    for i, k in enumerate(near):
+        (model, params), reader, shape = models[k], readers[k], shapes[k]
+        x, y = _scene_xy(model, params, transform, window, fields[k], origin)
         s = centre_score(x, y, shape)
         if not np.any(s <= 1.0):
             continue
-        scores[k] = np.where(s <= 1.0, s, np.nan)
-        values[k] = balance[k, :, 0, None, None] * reader.sample(x, y, method=method) + balance[k, :, 1, None, None]
+        scores[i] = np.where(s <= 1.0, s, np.nan)
+        values[i] = balance[k, :, 0, None, None] * reader.sample(x, y, method=method) + balance[k, :, 1, None, None]
     feather = 2.0 * feather_px / max(min(min(s) for s in shapes), 1)
     mosaic, source, _ = blend(values, scores, feather=feather)
+    if near.size:  # blend counts the scenes of this tile; the store names them by block index
+        source = np.where(source == NO_SOURCE, NO_SOURCE, near[np.minimum(source, near.size - 1)]).astype(np.uint16)
     g = zarr.open_group(store, mode="r+")
     g["mosaic"][:, r0:r1, c0:c1] = mosaic
     g["source"][r0:r1, c0:c1] = source
@@ -351,10 +360,11 @@ def mosaic(
                 for n, f in zip(todo, done):
                     fields[n] = f
         origin = tuple(int(round(v)) for v in ~transform * (out_transform.c, out_transform.f))  # output (0, 0) in reference pixels
+        boxes = np.array([_footprint_box(to_ref[k], shapes[k], origin) for k in block])
         with timer("mosaic"):
             tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
                 store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
-                [shapes[k] for k in block], feather, resampling, gains, fields, origin) for t in grid}
+                [shapes[k] for k in block], feather, resampling, gains, fields, origin, boxes) for t in grid}
             job.run_tiles("mosaic", tasks, phase="mosaic tiles")
         import zarr
 
@@ -441,6 +451,17 @@ def _match(job: Job, name: str, key: str, base, dist, base_reader, dist_reader, 
         return exc
     finally:
         sub.release()
+
+
+def _footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], margin: int = 16) -> tuple[int, int, int, int]:
+    """``row0, row1, col0, col1`` (output pixels) around a scene's footprint, grown by ``margin``."""
+    h, w = shape
+    t = np.linspace(0.0, 1.0, 17)
+    xs = np.concatenate([t * (w - 1), np.full(17, w - 1.0), t * (w - 1), np.zeros(17)])
+    ys = np.concatenate([np.zeros(17), t * (h - 1), np.full(17, h - 1.0), t * (h - 1)])
+    rx, ry = to_ref(xs, ys)
+    return (int(np.floor(ry.min())) - origin[1] - margin, int(np.ceil(ry.max())) - origin[1] + margin + 1,
+            int(np.floor(rx.min())) - origin[0] - margin, int(np.ceil(rx.max())) - origin[0] + margin + 1)
 
 
 def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, model, tp, to_ref, shape,
