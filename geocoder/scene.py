@@ -19,6 +19,7 @@ from affine import Affine
 
 from . import storage
 from .errors import InputError, as_environment_failure
+from .conventions import georeference, pixel_grid
 from .outputs import check_output, commit_output, product_attrs
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 
@@ -193,7 +194,13 @@ def ingest(
     ds.attrs.update(product_attrs("scene"))
     ds[IMAGE_VAR].attrs = {k: v for k, v in scene.attrs.items() if k != "georeferenced"}
     ds[IMAGE_VAR].attrs["georeferenced"] = int(bool(scene.attrs.get("georeferenced")))
+    ds[IMAGE_VAR].attrs.setdefault("long_name", "scene bands, NaN where nodata")
     ds[IMAGE_VAR].encoding = {}
+    ds["band"].attrs["long_name"] = "band of the source (1-based)"
+    if scene.attrs.get("georeferenced"):
+        ds = georeference(ds, scene.rio.crs, scene.rio.transform())
+    else:
+        ds = pixel_grid(ds)
     try:
         delayed = ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False)
         try:

@@ -27,12 +27,13 @@ from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
+from ..conventions import georeference, pixel_grid, status_attrs
 from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
 from ..scene import WindowReader, ingest, open_scene
-from ..status import Status, legend
+from ..status import Status
 from ..tiles import TileGrid
 from .coarse import coarse_alignment
 from .correspond import fit_global, match_tiles
@@ -494,7 +495,7 @@ def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse:
             "registered": (("band", "y", "x"), registered),
             "dx": (("y", "x"), dx, {"long_name": "x_distorted - x_base", "units": "pixel"}),
             "dy": (("y", "x"), dy, {"long_name": "y_distorted - y_base", "units": "pixel"}),
-            "status": (("y", "x"), status, {"flag_meanings": json.dumps(legend())}),
+            "status": (("y", "x"), status, status_attrs()),
             **{
                 k: (("y", "x"), v, {"long_name": LONG_NAMES[k], "units": "pixel" if k != "correlation" else "1"})
                 for k, v in extra.items()
@@ -502,8 +503,12 @@ def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse:
         },
         coords=coords,
     )
+    ds["registered"].attrs["long_name"] = "distorted image resampled onto the base grid"
+    ds["band"].attrs["long_name"] = "band of the distorted image (1-based)"
     if scene.attrs.get("georeferenced"):
-        ds = ds.rio.write_crs(scene.rio.crs).rio.write_transform(scene.rio.transform())
+        ds = georeference(ds, scene.rio.crs, scene.rio.transform())
+    else:
+        ds = pixel_grid(ds)
     ds.attrs.update(
         {
             "mapping": json.dumps(mapping.to_dict()),
