@@ -3,6 +3,7 @@
 from importlib.metadata import PackageNotFoundError, version
 
 from .errors import GeocoderError, InputError, MatchingError
+from .options import get_option, get_options, set_options
 from .pipeline.register import RegisterOptions, register
 from .scene import ingest, open_scene
 from .status import Status
@@ -19,7 +20,10 @@ __all__ = [
     "RegisterOptions",
     "Status",
     "__version__",
+    "get_option",
+    "get_options",
     "ingest",
     "open_scene",
     "register",
+    "set_options",
 ]

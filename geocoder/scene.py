@@ -153,7 +153,7 @@ def ingest(
     src: str | os.PathLike | xr.DataArray,
     out: str | os.PathLike,
     *,
-    tile: int = 512,
+    tile: int | None = None,
     nodata: float | None = None,
     bands: list[int] | None = None,
     client=None,
@@ -166,6 +166,8 @@ def ingest(
     ``(bands, tile, tile)``. It is written under a temporary name and committed when
     complete (:func:`geocoder.storage.commit_store`), so a killed job never leaves a store
     that looks finished. ``out`` is a local path or any fsspec URL.
+
+    ``tile`` defaults to :func:`geocoder.get_option` ``("tile")`` (512 unless set).
 
     ``atomic=False`` writes in place, for callers that record completion themselves (a
     job's manifest): on object stores it saves copying the store once.
@@ -186,6 +188,10 @@ def ingest(
     """
     if atomic:
         out = check_output(out, inputs=(src,), overwrite=overwrite, option="OUT")
+    if tile is None:
+        from .options import get_option
+
+        tile = get_option("tile")
     scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands)
     scene = scene.chunk(_chunks(tile))
     out = storage.normalize(out)
@@ -193,11 +199,13 @@ def ingest(
     ds = scene.to_dataset(name=IMAGE_VAR)
     ds.attrs.update(product_attrs("scene"))
     ds[IMAGE_VAR].attrs = {k: v for k, v in scene.attrs.items() if k != "georeferenced"}
-    ds[IMAGE_VAR].attrs["georeferenced"] = int(bool(scene.attrs.get("georeferenced")))
+    # a DataArray not made by open_scene (rioxarray's own) counts as georeferenced by its CRS
+    georeferenced = bool(scene.attrs.get("georeferenced", scene.rio.crs is not None))
+    ds[IMAGE_VAR].attrs["georeferenced"] = int(georeferenced)
     ds[IMAGE_VAR].attrs.setdefault("long_name", "scene bands, NaN where nodata")
     ds[IMAGE_VAR].encoding = {}
     ds["band"].attrs["long_name"] = "band of the source (1-based)"
-    if scene.attrs.get("georeferenced"):
+    if georeferenced:
         ds = georeference(ds, scene.rio.crs, scene.rio.transform())
     else:
         ds = pixel_grid(ds)
