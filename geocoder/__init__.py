@@ -2,6 +2,7 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
+from . import accessor  # noqa: F401  (registers the .geocoder accessor on DataArray and Dataset)
 from .errors import GeocoderError, InputError, MatchingError
 from .options import get_option, get_options, set_options
 from .pipeline.register import RegisterOptions, register
