@@ -2,7 +2,9 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
+from . import accessor  # noqa: F401  (registers the .geocoder accessor on DataArray and Dataset)
 from .errors import GeocoderError, InputError, MatchingError
+from .options import get_option, get_options, set_options
 from .pipeline.register import RegisterOptions, register
 from .scene import ingest, open_scene
 from .status import Status
@@ -19,7 +21,10 @@ __all__ = [
     "RegisterOptions",
     "Status",
     "__version__",
+    "get_option",
+    "get_options",
     "ingest",
     "open_scene",
     "register",
+    "set_options",
 ]

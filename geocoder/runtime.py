@@ -33,10 +33,13 @@ def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "a
     """A local cluster of worker processes sized to the machine, one thread each.
 
     Parallelism comes from tasks, not from threads inside kernels, so every worker runs
-    one thread (and one BLAS thread). Workers run with :data:`WORKER_ENV` and
+    one thread (and one BLAS thread). ``n_workers`` defaults to the option ``n_workers``
+    (:func:`geocoder.set_options`, Dask config ``geocoder.n_workers``), else one per CPU. Workers run with :data:`WORKER_ENV` and
     :data:`WORKER_CONFIG` (a nanny hands its configuration to the worker it restarts).
     """
-    n = n_workers or max(1, os.cpu_count() or 1)
+    from .options import get_option
+
+    n = n_workers or get_option("n_workers") or max(1, os.cpu_count() or 1)
     # a task's error reaches the client, which reports it; when the caller keeps Dask's own
     # errors quiet (the CLI unless -vv) the workers do not also log it with its traceback
     quiet = logging.getLogger("distributed").getEffectiveLevel() >= logging.ERROR

@@ -19,6 +19,7 @@ from affine import Affine
 
 from . import storage
 from .errors import InputError, as_environment_failure
+from .conventions import georeference, pixel_grid
 from .outputs import check_output, commit_output, product_attrs
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 
@@ -152,7 +153,7 @@ def ingest(
     src: str | os.PathLike | xr.DataArray,
     out: str | os.PathLike,
     *,
-    tile: int = 512,
+    tile: int | None = None,
     nodata: float | None = None,
     bands: list[int] | None = None,
     client=None,
@@ -165,6 +166,8 @@ def ingest(
     ``(bands, tile, tile)``. It is written under a temporary name and committed when
     complete (:func:`geocoder.storage.commit_store`), so a killed job never leaves a store
     that looks finished. ``out`` is a local path or any fsspec URL.
+
+    ``tile`` defaults to :func:`geocoder.get_option` ``("tile")`` (512 unless set).
 
     ``atomic=False`` writes in place, for callers that record completion themselves (a
     job's manifest): on object stores it saves copying the store once.
@@ -185,6 +188,10 @@ def ingest(
     """
     if atomic:
         out = check_output(out, inputs=(src,), overwrite=overwrite, option="OUT")
+    if tile is None:
+        from .options import get_option
+
+        tile = get_option("tile")
     scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands)
     scene = scene.chunk(_chunks(tile))
     out = storage.normalize(out)
@@ -192,8 +199,16 @@ def ingest(
     ds = scene.to_dataset(name=IMAGE_VAR)
     ds.attrs.update(product_attrs("scene"))
     ds[IMAGE_VAR].attrs = {k: v for k, v in scene.attrs.items() if k != "georeferenced"}
-    ds[IMAGE_VAR].attrs["georeferenced"] = int(bool(scene.attrs.get("georeferenced")))
+    # a DataArray not made by open_scene (rioxarray's own) counts as georeferenced by its CRS
+    georeferenced = bool(scene.attrs.get("georeferenced", scene.rio.crs is not None))
+    ds[IMAGE_VAR].attrs["georeferenced"] = int(georeferenced)
+    ds[IMAGE_VAR].attrs.setdefault("long_name", "scene bands, NaN where nodata")
     ds[IMAGE_VAR].encoding = {}
+    ds["band"].attrs["long_name"] = "band of the source (1-based)"
+    if georeferenced:
+        ds = georeference(ds, scene.rio.crs, scene.rio.transform())
+    else:
+        ds = pixel_grid(ds)
     try:
         delayed = ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False)
         try:

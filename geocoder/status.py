@@ -25,5 +25,9 @@ class Status(IntEnum):
 
 
 def legend() -> dict[str, int]:
-    """Code table stored with the output (``status`` attribute ``flag_meanings``)."""
+    """Code table stored with the output as JSON (``status`` attribute ``status_legend``).
+
+    The same table is in the CF attributes ``flag_values`` / ``flag_meanings``
+    (:func:`geocoder.conventions.status_attrs`).
+    """
     return {s.name.lower(): int(s) for s in Status}

@@ -44,7 +44,8 @@ def test_polynomial_registration_real_imagery(shared_data, tmp_path, client, whi
     # the store: registered bands on the base grid with the base CRS, documented status codes
     assert ds.registered.dims == ("band", "y", "x") and ds.registered.shape[1:] == (size, size)
     assert ds.rio.crs is not None and ds.dx.dtype == np.float32 and ds.status.dtype == np.uint8
-    assert json.loads(ds.status.attrs["flag_meanings"])["model"] == Status.MODEL
+    assert json.loads(ds.status.attrs["status_legend"])["model"] == Status.MODEL
+    assert ds.status.attrs["flag_meanings"].split()[Status.MODEL] == "model"
     # the registered image matches the base where both exist
     reg, base = ds.registered.values[0], files.pair.base[0]
     ok = np.isfinite(reg) & inside

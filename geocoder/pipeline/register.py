@@ -27,12 +27,14 @@ from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
+from ..conventions import georeference, pixel_grid, status_attrs
+from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
 from ..scene import WindowReader, ingest, open_scene
-from ..status import Status, legend
+from ..status import Status
 from ..tiles import TileGrid
 from .coarse import coarse_alignment
 from .correspond import fit_global, match_tiles
@@ -55,7 +57,7 @@ LONG_NAMES = {
 class RegisterOptions:
     """Everything :func:`register` can be told, with the seed's defaults."""
 
-    tile: int = 512
+    tile: int | None = None  # None: geocoder.get_option("tile") (512 unless set)
     resampling: str = "bilinear"
     band: int = 1
     dist_band: int | None = None
@@ -70,6 +72,8 @@ class RegisterOptions:
     postfilter: PostFilterOptions = field(default_factory=PostFilterOptions)
 
     def validate(self) -> None:
+        if self.tile is None:
+            return replace(self, tile=get_option("tile")).validate()
         if self.resampling not in RESAMPLING:
             raise ValueError(f"resampling must be one of {RESAMPLING}, got {self.resampling!r}")
         if self.tile < 64 or self.tile % self.interest.cell:
@@ -254,8 +258,10 @@ def register(
         :func:`job_directory`). Without it the result is computed into memory.
     resampling : {"nearest", "bilinear", "cubic", "lanczos"}
         Interpolator of the single resampling.
-    tile : int
-        Tile size (chunk) of all tile-parallel stages; a multiple of 64.
+    tile : int, optional
+        Tile size (chunk) of all tile-parallel stages; a multiple of 64. Default
+        ``options.tile``, else :func:`geocoder.get_option` ``("tile")`` (512 unless set by
+        :func:`geocoder.set_options` or Dask config ``geocoder.tile``).
     client : distributed.Client, optional
         Where to run; default ``scheduler`` or ``DASK_SCHEDULER_ADDRESS``, else a local cluster.
     band, dist_band : int
@@ -269,8 +275,8 @@ def register(
         Extra nodata values for inputs that do not declare theirs.
     options : RegisterOptions, optional
         All options; the keywords above, where given, override it (the defaults of
-        ``resampling``, ``tile``, ``band``, ``order`` and ``dense`` are :class:`RegisterOptions`'s:
-        bilinear, 512, 1, 2, True).
+        ``resampling``, ``band``, ``order`` and ``dense`` are :class:`RegisterOptions`'s:
+        bilinear, 1, 2, True; for ``tile`` see above).
     resume : bool
         Continue the unfinished job writing ``out`` (same inputs, options and version):
         tiles finished by an earlier, interrupted run are not computed again. False
@@ -279,7 +285,8 @@ def register(
         Replace an existing ``out`` if geocoder wrote it (never anything else). An output
         equal to, inside or containing an input or the working directory is always refused.
     show_progress : Progress or bool, optional
-        Progress receiver (True: a bar per phase on standard error).
+        Progress receiver (True: a bar per phase on standard error). Default
+        :func:`geocoder.get_option` ``("progress")``; None keeps the caller's display.
 
     Returns
     -------
@@ -291,6 +298,8 @@ def register(
     """
     given = {"tile": tile, "resampling": resampling, "band": band, "dist_band": dist_band, "order": order, "dense": dense}
     opts = replace(options or RegisterOptions(), **{k: v for k, v in given.items() if v is not None})
+    if opts.tile is None:  # neither the keyword nor ``options``: geocoder.set_options, Dask config, 512
+        opts = replace(opts, tile=get_option("tile"))
     opts.validate()
     tile = opts.tile
     if out is not None:
@@ -311,6 +320,8 @@ def register(
     job = _open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     if job.resumed:
         log.info("resuming the job in %s", job.path)
+    if show_progress is None:
+        show_progress = get_option("progress")
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
             dask_client(client, scheduler) as c:
         run.connected = c.scheduler.address
@@ -494,7 +505,7 @@ def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse:
             "registered": (("band", "y", "x"), registered),
             "dx": (("y", "x"), dx, {"long_name": "x_distorted - x_base", "units": "pixel"}),
             "dy": (("y", "x"), dy, {"long_name": "y_distorted - y_base", "units": "pixel"}),
-            "status": (("y", "x"), status, {"flag_meanings": json.dumps(legend())}),
+            "status": (("y", "x"), status, status_attrs()),
             **{
                 k: (("y", "x"), v, {"long_name": LONG_NAMES[k], "units": "pixel" if k != "correlation" else "1"})
                 for k, v in extra.items()
@@ -502,8 +513,12 @@ def _output_dataset(scene, registered, dx, dy, status, mapping: PolyMap, coarse:
         },
         coords=coords,
     )
+    ds["registered"].attrs["long_name"] = "distorted image resampled onto the base grid"
+    ds["band"].attrs["long_name"] = "band of the distorted image (1-based)"
     if scene.attrs.get("georeferenced"):
-        ds = ds.rio.write_crs(scene.rio.crs).rio.write_transform(scene.rio.transform())
+        ds = georeference(ds, scene.rio.crs, scene.rio.transform())
+    else:
+        ds = pixel_grid(ds)
     ds.attrs.update(
         {
             "mapping": json.dumps(mapping.to_dict()),

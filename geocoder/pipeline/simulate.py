@@ -23,6 +23,7 @@ import numpy as np
 import xarray as xr
 from affine import Affine
 
+from ..conventions import pixel_grid
 from ..errors import InputError
 from ..geometry import pixel_to_world, world_to_pixel
 from ..outputs import check_output, commit_output, product_attrs
@@ -287,8 +288,10 @@ def _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, t
             ds = xr.Dataset(
                 {
                     "image": (("band", "y", "x"), image),
-                    "ground_x": (("y", "x"), ground[0], {"long_name": "ground x in the ortho CRS", "units": "m"}),
-                    "ground_y": (("y", "x"), ground[1], {"long_name": "ground y in the ortho CRS", "units": "m"}),
+                    "ground_x": (("y", "x"), ground[0], {"long_name": "ground x in the ortho CRS", "units": "m",
+                                                        "standard_name": "projection_x_coordinate"}),
+                    "ground_y": (("y", "x"), ground[1], {"long_name": "ground y in the ortho CRS", "units": "m",
+                                                        "standard_name": "projection_y_coordinate"}),
                     "ground_z": (("y", "x"), ground[2], {"long_name": "ground height", "units": "m"}),
                     "dem": (("dem_y", "dem_x"), terrain.heights, {"transform": list(terrain.transform)[:6]}),
                 },
@@ -304,6 +307,10 @@ def _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, t
                     **product_attrs("simulate"),
                 },
             )
+            # the image is in scanner geometry (no grid CRS): x/y are the pixel indices; the
+            # ortho's CRS of ground_x/ground_y is in the "crs" attribute
+            ds["image"].attrs["long_name"] = "simulated scanner image"
+            ds = pixel_grid(ds)
             ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False).compute()
         commit_output(tmp, out, overwrite=overwrite)
     except BaseException:

@@ -1,0 +1,47 @@
+"""The .geocoder accessor delegates to the module functions (same results, no copies of them)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+import xarray as xr
+from pairs import write_synthetic_pair
+
+import geocoder
+from geocoder import open_scene, register
+from geocoder.accessor import GeocoderArrayAccessor, GeocoderDatasetAccessor
+from geocoder.kernels.polynomial import PolyMap
+from geocoder.pipeline.register import RegisterSummary
+
+pytestmark = [pytest.mark.cluster]
+
+
+def test_import_geocoder_registers_the_accessor():
+    assert isinstance(xr.DataArray([1]).geocoder, GeocoderArrayAccessor)
+    assert isinstance(xr.Dataset().geocoder, GeocoderDatasetAccessor)
+    with pytest.raises(ValueError, match="not a geocoder register output"):
+        xr.Dataset().geocoder.summary()
+    assert geocoder.accessor.register is geocoder.register  # bound, not re-implemented
+
+
+def test_accessor_register_ingest_and_cog(tmp_path, client):
+    work = write_synthetic_pair(tmp_path, 256, seed=4, max_displacement=3)
+    base = open_scene(work / "base.tif", chunks=128)
+    ds = base.geocoder.register(open_scene(work / "dist.tif", chunks=128), out=tmp_path / "out.zarr", tile=128,
+                                client=client, dense=False)
+    direct = register(work / "base.tif", work / "dist.tif", tile=128, client=client, dense=False)
+    np.testing.assert_array_equal(ds.dx.values, direct.dx.values)
+    np.testing.assert_array_equal(ds.status.values, direct.status.values)
+    summary = ds.geocoder.summary()
+    assert isinstance(summary, RegisterSummary) and summary.tiepoints > 0
+    assert sum(summary.status_counts.values()) == 256 * 256
+    mapping = ds.geocoder.mapping()
+    assert isinstance(mapping, PolyMap) and mapping.order == 2
+    cog = ds.geocoder.to_cog(tmp_path / "registered.tif", variable="registered", client=client, blocksize=128)
+    with rasterio.open(cog) as f, rasterio.open(work / "base.tif") as b:
+        assert f.crs == b.crs and f.transform == b.transform and f.shape == b.shape
+        np.testing.assert_array_equal(f.read(1), ds.registered.values[0])
+    scene = base.geocoder.ingest(tmp_path / "base.zarr", tile=128, client=client)
+    np.testing.assert_array_equal(scene.values, base.values)
+    assert scene.rio.crs == base.rio.crs

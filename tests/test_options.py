@@ -1,0 +1,79 @@
+"""geocoder.set_options: validation, layers (call > options > Dask config > default), and where it is read."""
+
+from __future__ import annotations
+
+import json
+
+import dask
+import pytest
+import xarray as xr
+from pairs import write_synthetic_pair
+
+import geocoder
+from geocoder import RegisterOptions, get_option, get_options, register, set_options
+from geocoder.runtime import dask_client
+
+
+@pytest.mark.parametrize("options,named", [({"tile": 100}, "'tile'"), ({"tile": 32}, "'tile'"), ({"tile": True}, "'tile'"),
+                                           ({"progress": "yes"}, "'progress'"), ({"n_workers": 0}, "'n_workers'"),
+                                           ({"colour": "red"}, "'colour'")])
+def test_bad_names_and_values_raise_naming_the_option(options, named):
+    before = get_options()
+    with pytest.raises(ValueError, match=named):
+        set_options(**options)
+    assert get_options() == before  # nothing half set
+
+
+def test_context_manager_global_setter_and_dask_config():
+    assert get_options() == {"tile": 512, "progress": None, "n_workers": None}
+    with set_options(tile=256, progress=True):
+        assert get_option("tile") == 256 and get_option("progress") is True
+        with set_options(tile=1024):
+            assert get_option("tile") == 1024
+        assert get_option("tile") == 256
+    assert get_option("tile") == 512 and get_option("progress") is None
+    try:
+        geocoder.set_options(n_workers=3)
+        assert get_option("n_workers") == 3
+    finally:
+        geocoder.set_options(n_workers=None)
+    # Dask config is the layer below the options
+    with dask.config.set({"geocoder.tile": 128}):
+        assert get_option("tile") == 128
+        with set_options(tile=256):
+            assert get_option("tile") == 256
+    with dask.config.set({"geocoder.tile": 100}), pytest.raises(ValueError, match="geocoder.tile"):
+        get_option("tile")
+    with pytest.raises(ValueError, match="'nope'"):
+        get_option("nope")
+
+
+@pytest.mark.cluster
+def test_local_cluster_size_from_option():
+    with set_options(n_workers=1), dask_client() as c:
+        assert len(c.scheduler_info()["workers"]) == 1
+
+
+@pytest.mark.cluster
+def test_register_tile_layers_and_progress(tmp_path, client, capsys):
+    """Keyword > RegisterOptions > set_options > default; issue 18: order 3 and tile 256 from options."""
+    work = write_synthetic_pair(tmp_path, 512, seed=5, max_displacement=4)
+    base, dist = work / "base.tif", work / "dist.tif"
+
+    def tile_of(store):
+        return xr.open_zarr(store, consolidated=False).dx.data.chunksize
+
+    with set_options(tile=128):
+        ds = register(base, dist, out=tmp_path / "a.zarr", client=client, options=RegisterOptions(order=3, tile=256, dense=False))
+        assert json.loads(ds.attrs["mapping"])["order"] == 3
+        assert tile_of(tmp_path / "a.zarr") == (256, 256)
+        register(base, dist, out=tmp_path / "b.zarr", client=client, tile=256, dense=False)
+        assert tile_of(tmp_path / "b.zarr") == (256, 256)
+        capsys.readouterr()
+        with set_options(progress=True):
+            register(base, dist, out=tmp_path / "c.zarr", client=client, dense=False)
+        assert tile_of(tmp_path / "c.zarr") == (128, 128)
+        assert "ingest (base)" in capsys.readouterr().err
+    register(base, dist, out=tmp_path / "d.zarr", client=client, dense=False)
+    assert tile_of(tmp_path / "d.zarr") == (512, 512)
+    assert "ingest" not in capsys.readouterr().err  # no option, no display: as before
