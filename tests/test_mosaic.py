@@ -122,6 +122,7 @@ def test_cli_mosaic_and_blend_kernel(block, client, tmp_path):
     from rio_cogeo.cogeo import cog_validate
 
     store = xr.open_zarr(tmp_path / "m.zarr", decode_coords="all", consolidated=False)
+    assert store.rio.crs == "EPSG:32633" and store.attrs["proj:code"] == "EPSG:32633"
     with rasterio.open(tmp_path / "m.tif") as f:
         assert f.crs == store.rio.crs and f.transform == store.rio.transform()
         np.testing.assert_array_equal(f.read(), store.mosaic.values)

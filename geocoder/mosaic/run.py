@@ -32,6 +32,7 @@ from affine import Affine
 
 from .. import progress
 from ..cog import to_cog
+from ..conventions import georeference
 from ..errors import GeocoderError, InputError
 from ..geometry import pixel_to_world, world_to_pixel
 from ..kernels.polynomial import fit_polymap
@@ -644,8 +645,9 @@ def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nband
         },
         coords={"band": np.arange(1, nbands + 1), "y": ys, "x": xs},
     )
+    ds["mosaic"].attrs["long_name"] = "mosaic of the block's scenes"
     if ref.attrs.get("georeferenced"):
-        ds = ds.rio.write_crs(ref.rio.crs).rio.write_transform(transform)
+        ds = georeference(ds, ref.rio.crs, transform)
     return ds, grid, transform
 
 
