@@ -139,12 +139,17 @@ def test_gdal_reads_crs_and_transform(stores, name, variable):
     why = _gdal_zarr_v3_failure(stores["tmp"])
     if why:
         pytest.skip(why)
-    location = f'ZARR:"{stores[name]}":/{variable}'
+    _gdal_sees_the_base_georeference(f'ZARR:"{stores[name]}":/{variable}', stores["base"])
+
+
+def _gdal_sees_the_base_georeference(location: str, base: dict):
+    """GDAL (through rasterio and rioxarray) reads the base image's CRS, transform and shape."""
     crs, transform, shape = _gdal_georeference(location)
-    _same_georeference(crs, transform, stores["base"])
-    assert shape == stores["base"]["shape"]
+    _same_georeference(crs, transform, base)
+    assert shape == base["shape"]
     da = rioxarray.open_rasterio(location)
-    _same_georeference(da.rio.crs, da.rio.transform(), stores["base"])
+    _same_georeference(da.rio.crs, da.rio.transform(), base)
+    return da
 
 
 def _legacy_codec_copy(src: Path, dst: Path) -> Path:
@@ -180,11 +185,6 @@ def test_gdal_reads_the_georeference_attributes(stores, name, variable, tmp_path
     if not _has_zarr_driver():
         pytest.skip(f"GDAL {rasterio.__gdal_version__} has no Zarr driver")
     copy = _legacy_codec_copy(Path(stores[name]), tmp_path / "copy.zarr")
-    location = f'ZARR:"{copy}":/{variable}'
-    crs, transform, shape = _gdal_georeference(location)
-    _same_georeference(crs, transform, stores["base"])
-    assert shape == stores["base"]["shape"]
-    da = rioxarray.open_rasterio(location)
-    _same_georeference(da.rio.crs, da.rio.transform(), stores["base"])
+    da = _gdal_sees_the_base_georeference(f'ZARR:"{copy}":/{variable}', stores["base"])
     expected = xr.open_zarr(stores[name], consolidated=False)[variable].values
     np.testing.assert_array_equal(da.values.reshape(expected.shape), expected)
