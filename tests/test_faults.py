@@ -291,8 +291,10 @@ def test_ctrl_c_is_one_line_and_the_rerun_resumes(tmp_path, client):
     write_geotiff(tmp_path / "b.tif", pair.base)
     write_geotiff(tmp_path / "d.tif", pair.distorted)
     args = [*GEOCODER[:-1], "register", "b.tif", "d.tif", "--out", "o.zarr", "--tile", 128]  # a local cluster of its own
+    # a terminal's job starts with Ctrl-C at its default; a test runner started in the
+    # background of a non-interactive shell would hand down SIGINT ignored
     p = subprocess.Popen(list(map(str, args)), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True)
+                         start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     wait_past_correspondence(p, tmp_path / ".o.zarr.geocoder-job")
     os.killpg(p.pid, signal.SIGINT)
     _, err = p.communicate(timeout=120)
