@@ -16,6 +16,7 @@ import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 import zarr
 from affine import Affine
+from rasterio.errors import NotGeoreferencedWarning
 
 from . import storage
 from .errors import InputError, as_environment_failure
@@ -107,7 +108,7 @@ def open_scene(
             source_dtype = da.attrs.get("source_dtype", str(da.dtype))
         else:
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # NotGeoreferencedWarning for raw frames
+                warnings.simplefilter("ignore", NotGeoreferencedWarning)  # a raw frame, on purpose
                 da = rioxarray.open_rasterio(where, masked=True, chunks=_chunks(chunks), lock=False, cache=False)
             source_dtype = str(da.encoding.get("rasterio_dtype", da.encoding.get("dtype", da.dtype)))
             if isinstance(da, list):
@@ -318,6 +319,6 @@ def write_geotiff(
     if nodata is not None:
         profile["nodata"] = nodata
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # NotGeoreferencedWarning for raw images
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)  # a raw image, on purpose
         with rasterio.open(os.fspath(path), "w", **profile) as dst:
             dst.write(data.astype(dtype))
