@@ -1,0 +1,794 @@
+"""Least-squares matching of every pixel of a window at once, on a field-warped image.
+
+:mod:`geocoder.kernels.alsc` matches one template at a time: each evaluation resamples the
+distorted image under that template's own affine, so a pixel costs 4-6 evaluations of 357
+samples. When a displacement field ``d0`` is already known to a fraction of a pixel (the
+region growing's lattice, interpolated along the scan lines), the distorted image and its
+gradients can instead be resampled ONCE per iteration for the whole window at
+``p + d(p)``; every template then sees the same warped image ``I``, and all of its normal
+equations are window sums of products of per-pixel images, which sliding sums give at
+O(1) per pixel whatever the template size.
+
+Per template (``(2 rx + 1) x (2 ry + 1)`` pixels centred on ``p``, offsets ``u, v``) the
+model is the Otto-Chau/Gruen one, linearised about the current position ``q(x)`` of EVERY
+template pixel ``x`` (not about the centre's), with the radiometry made linear by scaling the
+geometric unknowns with the gain::
+
+    T(x) ~ alpha y_p(x) + beta + gx (sx + c11 u + c12 v) + gy (sy + c21 u + c22 v)
+    y_p(x) = I(x + q(x)) - g(x) . (q(x) - q(p))
+
+(``T`` the base template, ``I`` the distorted image, ``g = (gx, gy)`` the slopes of its
+bilinear interpolant at ``x + q(x)``: the exact derivatives, so that ``I + g . dq`` IS the
+interpolant wherever ``dq`` stays in the same cell, which makes the solution that of ALSC
+sampled at its own affine, not a function of how rough the neighbours' positions are).
+The unknowns are linear: the position of ``p`` moves by ``(sx, sy) / alpha`` and its affine
+by ``c / alpha``; ``alpha, beta`` are gain and offset. The centring on ``q(p)`` is done
+algebraically from the same window sums, so one set of sums serves every template. The
+statistics are those of the last evaluation, as in ALSC: ``sigma0^2 = e.e / (n - 8)`` of the
+residuals in the template's grey values, the shift covariance
+``sigma0^2 [N^-1]_ss / alpha^2`` (the shift block of the full inverse) and ``rho``, the
+correlation coefficient of ``T`` and ``I`` over the template.
+
+The window sums ``sum u^a v^b f`` (``a + b <= 2``) come from prefix sums along each row
+(moments about the centre from those of the column index) and a direct sum over the
+``2 ry + 1`` rows, kept in a ring buffer of rows, so memory is a few rows per channel.
+
+Dependencies are local: after ``n`` iterations a pixel depends on ``d0`` within ``n`` template
+half-sizes of it (and on the images one template further), so a tile computed with that
+halo gives the same result for any tiling. Exit codes are those of
+:class:`geocoder.kernels.alsc.Exit`, decided in the same order.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from .alsc import Exit
+
+__all__ = ["FieldLsqResult", "field_lsq", "template_solution_reference"]
+
+_ACCEPTED = int(Exit.ACCEPTED)
+_OUTSIDE = int(Exit.OUTSIDE)
+_SINGULAR = int(Exit.SINGULAR)
+_NOT_CONVERGED = int(Exit.NOT_CONVERGED)
+_MOVED = int(Exit.MOVED)
+_DEGENERATE = int(Exit.DEGENERATE)
+_LOW_CORRELATION = int(Exit.LOW_CORRELATION)
+_IMPRECISE = int(Exit.IMPRECISE)
+_NOT_TRIED = -1
+
+_MIN_PIVOT = 1e-12
+
+# Horizontal moment planes (prefix sums along a row, per channel and power of u).
+# quadratic channels (a = 0, 1, 2): gx gx, gx gy, gy gy
+_XX, _XY, _YY = 0, 3, 6
+# linear channels (a = 0, 1): gx t, gy t, gx, gy, gx i, gy i
+_XT, _YT, _X, _Y, _XI, _YI = 9, 11, 13, 15, 17, 19
+# scalar channels (a = 0): t t, t, t y, y, y y, count, and t i, i, i i for the correlation
+_TT, _T, _TI, _I, _II, _W, _TR, _R, _RR = 21, 22, 23, 24, 25, 26, 27, 28, 29
+_NSCALARS = 9
+# the precision's channels (final round only), on the smooth central-difference gradients c:
+# cx cx, cx cy, cy cy (a = 0, 1, 2); cx i, cy i, cx, cy (a = 0, 1)
+_CXX, _CXY, _CYY, _CXR, _CYR, _CX, _CY = 30, 33, 36, 39, 41, 43, 45
+_NPLANES_SOLVE = 30
+_NPLANES = 47
+
+
+@numba.njit(nogil=True, cache=True)
+def _warp(dist, px, py, region, iw, gxw, gyw):  # pragma: no cover - compiled
+    """Bilinear samples of ``dist`` and the slopes of the interpolant at ``(px, py)`` inside ``region``.
+
+    NaN outside the image (the 2x2 taps must lie inside it) or where a tap is NaN.
+    """
+    hd, wd = dist.shape
+    r0, r1, c0, c1 = region
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            x = px[r, c]
+            y = py[r, c]
+            if not (x >= 0.0 and x < wd - 1 and y >= 0.0 and y < hd - 1):
+                iw[r, c] = np.nan
+                gxw[r, c] = np.nan
+                gyw[r, c] = np.nan
+                continue
+            ix = int(x)
+            iy = int(y)
+            fx = x - ix
+            fy = y - iy
+            a = dist[iy, ix]
+            b = dist[iy, ix + 1]
+            d = dist[iy + 1, ix]
+            e = dist[iy + 1, ix + 1]
+            top = a + fx * (b - a)
+            bottom = d + fx * (e - d)
+            iw[r, c] = top + fy * (bottom - top)
+            gxw[r, c] = (b - a) + fy * ((e - d) - (b - a))
+            gyw[r, c] = bottom - top
+
+
+@numba.njit(nogil=True, cache=True)
+def _sample(image, px, py, region, out):  # pragma: no cover - compiled
+    """Bilinear samples of ``image`` at ``(px, py)`` inside ``region`` (NaN outside)."""
+    hd, wd = image.shape
+    r0, r1, c0, c1 = region
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            x = px[r, c]
+            y = py[r, c]
+            if not (x >= 0.0 and x < wd - 1 and y >= 0.0 and y < hd - 1):
+                out[r, c] = np.nan
+                continue
+            ix = int(x)
+            iy = int(y)
+            fx = x - ix
+            fy = y - iy
+            top = image[iy, ix] + fx * (image[iy, ix + 1] - image[iy, ix])
+            bottom = image[iy + 1, ix] + fx * (image[iy + 1, ix + 1] - image[iy + 1, ix])
+            out[r, c] = top + fy * (bottom - top)
+
+
+def _gradients(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central differences (one-sided at the border), NaN spreading to the neighbours."""
+    gy, gx = np.gradient(d)
+    return gx, gy
+
+
+@numba.njit(nogil=True, cache=True)
+def _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, c0, c1, rx, nplanes, pre,
+                out):  # pragma: no cover - compiled
+    """Horizontal window sums of row ``r`` for centres ``c0 + rx .. c1 - rx - 1`` into ``out`` (planes, cols).
+
+    ``pre`` is a work array (planes, cols + 1) for the prefix sums over columns ``c0 .. c1 - 1``.
+    The linearised channel is ``y = I - g . (q - q_ref)`` with ``q = (px - col, py - row)`` the
+    pixel's current position relative to it and ``q_ref = (qx, qy)`` a constant of the task;
+    :func:`_assemble` moves the reference to each template's centre. With ``nplanes =
+    _NPLANES`` the precision's channels of the smooth gradients ``(cxw, cyw)`` are summed too.
+    """
+    n = c1 - c0
+    for k in range(nplanes):
+        pre[k, 0] = 0.0
+    for j in range(n):
+        c = c0 + j
+        x = float(j)
+        x2 = x * x
+        tv = float(t[r, c])
+        rv = iw[r, c]
+        gx = gxw[r, c]
+        gy = gyw[r, c]
+        iv = rv - gx * (px[r, c] - c - qx) - gy * (py[r, c] - r - qy)
+        ok = weight[r, c] and (tv - tv == 0.0) and (iv - iv == 0.0)
+        if not ok:
+            for k in range(nplanes):
+                pre[k, j + 1] = pre[k, j]
+            continue
+        v = gx * gx
+        pre[_XX, j + 1] = pre[_XX, j] + v
+        pre[_XX + 1, j + 1] = pre[_XX + 1, j] + x * v
+        pre[_XX + 2, j + 1] = pre[_XX + 2, j] + x2 * v
+        v = gx * gy
+        pre[_XY, j + 1] = pre[_XY, j] + v
+        pre[_XY + 1, j + 1] = pre[_XY + 1, j] + x * v
+        pre[_XY + 2, j + 1] = pre[_XY + 2, j] + x2 * v
+        v = gy * gy
+        pre[_YY, j + 1] = pre[_YY, j] + v
+        pre[_YY + 1, j + 1] = pre[_YY + 1, j] + x * v
+        pre[_YY + 2, j + 1] = pre[_YY + 2, j] + x2 * v
+        v = gx * tv
+        pre[_XT, j + 1] = pre[_XT, j] + v
+        pre[_XT + 1, j + 1] = pre[_XT + 1, j] + x * v
+        v = gy * tv
+        pre[_YT, j + 1] = pre[_YT, j] + v
+        pre[_YT + 1, j + 1] = pre[_YT + 1, j] + x * v
+        pre[_X, j + 1] = pre[_X, j] + gx
+        pre[_X + 1, j + 1] = pre[_X + 1, j] + x * gx
+        pre[_Y, j + 1] = pre[_Y, j] + gy
+        pre[_Y + 1, j + 1] = pre[_Y + 1, j] + x * gy
+        v = gx * iv
+        pre[_XI, j + 1] = pre[_XI, j] + v
+        pre[_XI + 1, j + 1] = pre[_XI + 1, j] + x * v
+        v = gy * iv
+        pre[_YI, j + 1] = pre[_YI, j] + v
+        pre[_YI + 1, j + 1] = pre[_YI + 1, j] + x * v
+        pre[_TT, j + 1] = pre[_TT, j] + tv * tv
+        pre[_T, j + 1] = pre[_T, j] + tv
+        pre[_TI, j + 1] = pre[_TI, j] + tv * iv
+        pre[_I, j + 1] = pre[_I, j] + iv
+        pre[_II, j + 1] = pre[_II, j] + iv * iv
+        pre[_W, j + 1] = pre[_W, j] + 1.0
+        pre[_TR, j + 1] = pre[_TR, j] + tv * rv
+        pre[_R, j + 1] = pre[_R, j] + rv
+        pre[_RR, j + 1] = pre[_RR, j] + rv * rv
+        if nplanes > _NPLANES_SOLVE:
+            cx = cxw[r, c]
+            cy = cyw[r, c]
+            if not (cx - cx == 0.0 and cy - cy == 0.0):  # next to nodata: the slopes, never a NaN in a sum
+                cx = gx
+                cy = gy
+            v = cx * cx
+            pre[_CXX, j + 1] = pre[_CXX, j] + v
+            pre[_CXX + 1, j + 1] = pre[_CXX + 1, j] + x * v
+            pre[_CXX + 2, j + 1] = pre[_CXX + 2, j] + x2 * v
+            v = cx * cy
+            pre[_CXY, j + 1] = pre[_CXY, j] + v
+            pre[_CXY + 1, j + 1] = pre[_CXY + 1, j] + x * v
+            pre[_CXY + 2, j + 1] = pre[_CXY + 2, j] + x2 * v
+            v = cy * cy
+            pre[_CYY, j + 1] = pre[_CYY, j] + v
+            pre[_CYY + 1, j + 1] = pre[_CYY + 1, j] + x * v
+            pre[_CYY + 2, j + 1] = pre[_CYY + 2, j] + x2 * v
+            v = cx * rv
+            pre[_CXR, j + 1] = pre[_CXR, j] + v
+            pre[_CXR + 1, j + 1] = pre[_CXR + 1, j] + x * v
+            v = cy * rv
+            pre[_CYR, j + 1] = pre[_CYR, j] + v
+            pre[_CYR + 1, j + 1] = pre[_CYR + 1, j] + x * v
+            pre[_CX, j + 1] = pre[_CX, j] + cx
+            pre[_CX + 1, j + 1] = pre[_CX + 1, j] + x * cx
+            pre[_CY, j + 1] = pre[_CY, j] + cy
+            pre[_CY + 1, j + 1] = pre[_CY + 1, j] + x * cy
+    for j in range(rx, n - rx):
+        lo = j - rx
+        hi = j + rx + 1
+        x = float(j)
+        for k in range(nplanes):
+            out[k, j] = pre[k, hi] - pre[k, lo]
+        # moments about the centre: sum (x' - x) f = S1 - x S0; sum (x' - x)^2 f = S2 - 2 x S1 + x^2 S0
+        for q in (_XX, _XY, _YY, _CXX, _CXY, _CYY):
+            if q >= nplanes:
+                break
+            s0 = out[q, j]
+            s1 = out[q + 1, j]
+            out[q + 2, j] = out[q + 2, j] - 2.0 * x * s1 + x * x * s0
+            out[q + 1, j] = s1 - x * s0
+        for q in (_XT, _YT, _X, _Y, _XI, _YI, _CXR, _CYR, _CX, _CY):
+            if q >= nplanes:
+                break
+            out[q + 1, j] = out[q + 1, j] - x * out[q, j]
+
+
+@numba.njit(nogil=True, cache=True)
+def _cholesky(nmat, scale, chol):  # pragma: no cover - compiled
+    """Cholesky factor of ``nmat`` scaled to a unit diagonal; False if not positive definite."""
+    n = nmat.shape[0]
+    for i in range(n):
+        d = nmat[i, i]
+        if not (d > 0.0 and d < np.inf):
+            return False
+        scale[i] = 1.0 / math.sqrt(d)
+    for j in range(n):
+        acc = nmat[j, j] * scale[j] * scale[j]
+        for k in range(j):
+            acc -= chol[j, k] * chol[j, k]
+        if not (acc > _MIN_PIVOT):
+            return False
+        ljj = math.sqrt(acc)
+        chol[j, j] = ljj
+        for i in range(j + 1, n):
+            acc = nmat[i, j] * scale[i] * scale[j]
+            for k in range(j):
+                acc -= chol[i, k] * chol[j, k]
+            chol[i, j] = acc / ljj
+    return True
+
+
+@numba.njit(nogil=True, cache=True)
+def _chol_solve(chol, scale, rhs, sol):  # pragma: no cover - compiled
+    n = chol.shape[0]
+    for i in range(n):
+        acc = rhs[i] * scale[i]
+        for k in range(i):
+            acc -= chol[i, k] * sol[k]
+        sol[i] = acc / chol[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = sol[i]
+        for k in range(i + 1, n):
+            acc -= chol[k, i] * sol[k]
+        sol[i] = acc / chol[i, i]
+    for i in range(n):
+        sol[i] *= scale[i]
+
+
+# row of each unknown (sx, sy, c11, c12, c21, c22, alpha, beta) in the normal equations: the shift last
+_P0 = 6
+_P1 = 7
+_P2 = 0
+_P3 = 1
+_P4 = 2
+_P5 = 3
+_P6 = 4
+_P7 = 5
+
+
+@numba.njit(nogil=True, cache=True)
+def _shift_solve(chol, scale, rhs, sol):  # pragma: no cover - compiled
+    """Like :func:`_chol_solve`, but the back substitution stops after the last four unknowns
+    (gain, offset and the shift)."""
+    n = chol.shape[0]
+    for i in range(n):
+        acc = rhs[i] * scale[i]
+        for k in range(i):
+            acc -= chol[i, k] * sol[k]
+        sol[i] = acc / chol[i, i]
+    for i in range(n - 1, n - 5, -1):
+        acc = sol[i]
+        for k in range(i + 1, n):
+            acc -= chol[k, i] * sol[k]
+        sol[i] = acc / chol[i, i]
+    for i in range(n - 4, n):
+        sol[i] *= scale[i]
+
+
+@numba.njit(nogil=True, cache=True)
+def _assemble(s, dx, dy, nmat, rhs):  # pragma: no cover - compiled
+    """Normal equations of one template from its window sums ``s`` (layout in :func:`_centred_sums`).
+
+    ``(dx, dy) = q(p) - q_ref`` moves the linearisation's reference to the template centre:
+    ``y_p = y + g . (dx, dy)``. The unknowns ``sx, sy, c11, c12, c21, c22, alpha, beta``
+    (index k) sit at row ``_Pk``: the shift last, so that its covariance block and its
+    solution come from the last rows of the Cholesky factor alone.
+    """
+    xx = 0
+    xy = 6
+    yy = 12
+    xt = 18
+    yt = 21
+    gx = 24
+    gy = 27
+    xi = 30
+    yi = 33
+    sc = 36
+    # geometry x geometry: sum g_i g_j m_i m_j
+    nmat[_P0, _P0] = s[xx + 0]
+    nmat[_P0, _P1] = nmat[_P1, _P0] = s[xy + 0]
+    nmat[_P0, _P2] = nmat[_P2, _P0] = s[xx + 1]
+    nmat[_P0, _P3] = nmat[_P3, _P0] = s[xx + 2]
+    nmat[_P0, _P4] = nmat[_P4, _P0] = s[xy + 1]
+    nmat[_P0, _P5] = nmat[_P5, _P0] = s[xy + 2]
+    nmat[_P1, _P1] = s[yy + 0]
+    nmat[_P1, _P2] = nmat[_P2, _P1] = s[xy + 1]
+    nmat[_P1, _P3] = nmat[_P3, _P1] = s[xy + 2]
+    nmat[_P1, _P4] = nmat[_P4, _P1] = s[yy + 1]
+    nmat[_P1, _P5] = nmat[_P5, _P1] = s[yy + 2]
+    nmat[_P2, _P2] = s[xx + 3]
+    nmat[_P2, _P3] = nmat[_P3, _P2] = s[xx + 4]
+    nmat[_P2, _P4] = nmat[_P4, _P2] = s[xy + 3]
+    nmat[_P2, _P5] = nmat[_P5, _P2] = s[xy + 4]
+    nmat[_P3, _P3] = s[xx + 5]
+    nmat[_P3, _P4] = nmat[_P4, _P3] = s[xy + 4]
+    nmat[_P3, _P5] = nmat[_P5, _P3] = s[xy + 5]
+    nmat[_P4, _P4] = s[yy + 3]
+    nmat[_P4, _P5] = nmat[_P5, _P4] = s[yy + 4]
+    nmat[_P5, _P5] = s[yy + 5]
+    # geometry x alpha: sum g m y_p = sum g m y + dx sum g gx m + dy sum g gy m  (m = 1, u, v)
+    nmat[_P0, _P6] = nmat[_P6, _P0] = s[xi + 0] + dx * s[xx + 0] + dy * s[xy + 0]
+    nmat[_P2, _P6] = nmat[_P6, _P2] = s[xi + 1] + dx * s[xx + 1] + dy * s[xy + 1]
+    nmat[_P3, _P6] = nmat[_P6, _P3] = s[xi + 2] + dx * s[xx + 2] + dy * s[xy + 2]
+    nmat[_P1, _P6] = nmat[_P6, _P1] = s[yi + 0] + dx * s[xy + 0] + dy * s[yy + 0]
+    nmat[_P4, _P6] = nmat[_P6, _P4] = s[yi + 1] + dx * s[xy + 1] + dy * s[yy + 1]
+    nmat[_P5, _P6] = nmat[_P6, _P5] = s[yi + 2] + dx * s[xy + 2] + dy * s[yy + 2]
+    # geometry x beta: sum g m
+    nmat[_P0, _P7] = nmat[_P7, _P0] = s[gx + 0]
+    nmat[_P2, _P7] = nmat[_P7, _P2] = s[gx + 1]
+    nmat[_P3, _P7] = nmat[_P7, _P3] = s[gx + 2]
+    nmat[_P1, _P7] = nmat[_P7, _P1] = s[gy + 0]
+    nmat[_P4, _P7] = nmat[_P7, _P4] = s[gy + 1]
+    nmat[_P5, _P7] = nmat[_P7, _P5] = s[gy + 2]
+    # radiometry
+    syg = dx * s[xi + 0] + dy * s[yi + 0]
+    gg = dx * dx * s[xx + 0] + 2.0 * dx * dy * s[xy + 0] + dy * dy * s[yy + 0]
+    nmat[_P6, _P6] = s[sc + 4] + 2.0 * syg + gg
+    nmat[_P6, _P7] = nmat[_P7, _P6] = s[sc + 3] + dx * s[gx + 0] + dy * s[gy + 0]
+    nmat[_P7, _P7] = s[sc + 5]
+    # right-hand side: sum column * T
+    rhs[_P0] = s[xt + 0]
+    rhs[_P2] = s[xt + 1]
+    rhs[_P3] = s[xt + 2]
+    rhs[_P1] = s[yt + 0]
+    rhs[_P4] = s[yt + 1]
+    rhs[_P5] = s[yt + 2]
+    rhs[_P6] = s[sc + 2] + dx * s[xt + 0] + dy * s[yt + 0]
+    rhs[_P7] = s[sc + 1]
+
+
+_NSUMS = 36 + _NSCALARS
+# vertical moments (powers of v) kept per horizontal plane: quadratic channels' a = 0 planes
+# need v^0..v^2, their a = 1 planes and the linear channels' a = 0 planes v^0..v^1
+_VPOW = np.array([3, 2, 1] * 3 + [2, 1] * 6 + [1] * _NSCALARS + [3, 2, 1] * 3 + [2, 1] * 4, dtype=np.int64)
+
+
+@numba.njit(nogil=True, cache=True)
+def _add_row(vsum, row, sign, rho, ncols, nplanes):  # pragma: no cover - compiled
+    """Add (``sign`` = 1) or remove (-1) one row of horizontal sums, at relative row ``rho``."""
+    w1 = sign * rho
+    w2 = w1 * rho
+    for k in range(nplanes):
+        npow = _VPOW[k]
+        for j in range(ncols):
+            h = row[k, j]
+            vsum[0, k, j] += sign * h
+        if npow > 1:
+            for j in range(ncols):
+                vsum[1, k, j] += w1 * row[k, j]
+        if npow > 2:
+            for j in range(ncols):
+                vsum[2, k, j] += w2 * row[k, j]
+
+
+@numba.njit(nogil=True, cache=True)
+def _centred_sums(vsum, rc, j, s):  # pragma: no cover - compiled
+    """Window sums at column ``j`` about the centre row ``rc`` (relative) from the running sums."""
+    for c in range(3):
+        q = 3 * c  # _XX, _XY, _YY planes are 0, 3, 6
+        o = 6 * c
+        a0 = vsum[0, q, j]
+        a1 = vsum[1, q, j]
+        s[o + 0] = a0
+        s[o + 1] = vsum[0, q + 1, j]
+        s[o + 2] = a1 - rc * a0
+        s[o + 3] = vsum[0, q + 2, j]
+        s[o + 4] = vsum[1, q + 1, j] - rc * vsum[0, q + 1, j]
+        s[o + 5] = vsum[2, q, j] - 2.0 * rc * a1 + rc * rc * a0
+    for c in range(6):
+        q = _XT + 2 * c
+        o = 18 + 3 * c
+        a0 = vsum[0, q, j]
+        s[o + 0] = a0
+        s[o + 1] = vsum[0, q + 1, j]
+        s[o + 2] = vsum[1, q, j] - rc * a0
+    for c in range(_NSCALARS):
+        s[36 + c] = vsum[0, _TT + c, j]
+
+
+@numba.njit(nogil=True, cache=True)
+def _precision_sums(vsum, rc, j, s):  # pragma: no cover - compiled
+    """The sums of :func:`_centred_sums` that the normal matrix needs, from the smooth gradients.
+
+    The gain's column is the sampled image itself (``y_p`` at convergence), so the
+    right-hand side's sums are left at zero.
+    """
+    for k in range(_NSUMS):
+        s[k] = 0.0
+    for c in range(3):
+        q = _CXX + 3 * c
+        o = 6 * c
+        a0 = vsum[0, q, j]
+        a1 = vsum[1, q, j]
+        s[o + 0] = a0
+        s[o + 1] = vsum[0, q + 1, j]
+        s[o + 2] = a1 - rc * a0
+        s[o + 3] = vsum[0, q + 2, j]
+        s[o + 4] = vsum[1, q + 1, j] - rc * vsum[0, q + 1, j]
+        s[o + 5] = vsum[2, q, j] - 2.0 * rc * a1 + rc * rc * a0
+    for c, o in ((_CX, 24), (_CY, 27), (_CXR, 30), (_CYR, 33)):
+        a0 = vsum[0, c, j]
+        s[o + 0] = a0
+        s[o + 1] = vsum[0, c + 1, j]
+        s[o + 2] = vsum[1, c, j] - rc * a0
+    s[36 + 3] = vsum[0, _R, j]
+    s[36 + 4] = vsum[0, _RR, j]
+    s[36 + 5] = vsum[0, _W, j]
+
+
+@numba.njit(nogil=True, cache=True)
+def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx, ry, min_count, final, sol,
+                  stats):  # pragma: no cover - compiled
+    """Solve the normal equations of every template centred in ``region``.
+
+    ``sol`` (8, h, w) gets ``(dx, dy, b11, b12, b21, b22, gain, offset)``: the move of the
+    position, the affine correction (both divided by the gain) and the radiometry in the
+    normalised grey values; ``stats`` (5, h, w) gets ``sigma_x, sigma_y, cov_xy, rho, code``
+    (code: 0 solved, OUTSIDE, SINGULAR). Only the move and the radiometry, and no
+    statistics, unless ``final``.
+    """
+    h, w = t.shape
+    r0, r1, c0, c1 = region
+    a0 = max(c0 - rx, 0)
+    a1 = min(c1 + rx, w)
+    ncols = a1 - a0
+    nring = 2 * ry + 1
+    nplanes = _NPLANES if final else _NPLANES_SOLVE
+    ring = np.zeros((nring, nplanes, ncols))
+    vsum = np.zeros((3, nplanes, ncols))
+    pre = np.empty((nplanes, ncols + 1))
+    s = np.empty(_NSUMS)
+    s2 = np.empty(_NSUMS)
+    rhs2 = np.empty(8)
+    nmat = np.empty((8, 8))
+    chol = np.zeros((8, 8))
+    scale = np.empty(8)
+    rhs = np.empty(8)
+    p = np.empty(8)
+    npix = float((2 * rx + 1) * (2 * ry + 1))
+    base_row = r0 - ry
+    for r in range(r0 - ry, r1 + ry):
+        slot = (r - base_row) % nring
+        if r - base_row >= nring:  # the row leaving the window
+            _add_row(vsum, ring[slot], -1.0, float(r - nring - base_row), ncols, nplanes)
+        if 0 <= r < h:
+            _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, a0, a1, rx, nplanes, pre, ring[slot])
+        else:
+            ring[slot, :, :] = 0.0
+        _add_row(vsum, ring[slot], 1.0, float(r - base_row), ncols, nplanes)
+        rc = r - ry  # the row whose window is now complete
+        if rc < r0:
+            continue
+        rrel = float(rc - base_row)
+        for c in range(c0, c1):
+            j = c - a0
+            stats[4, rc, c] = _OUTSIDE
+            if rc - ry < 0 or rc + ry >= h or j - rx < 0 or j + rx >= ncols:
+                continue
+            if not weight[rc, c]:
+                continue
+            _centred_sums(vsum, rrel, j, s)
+            cnt = s[41]
+            if cnt < min_count * npix or cnt <= 8.0:
+                continue
+            _assemble(s, px[rc, c] - c - qx, py[rc, c] - rc - qy, nmat, rhs)
+            if not _cholesky(nmat, scale, chol):
+                stats[4, rc, c] = _SINGULAR
+                continue
+            if not final:
+                _shift_solve(chol, scale, rhs, p)
+            else:
+                _chol_solve(chol, scale, rhs, p)
+            alpha = p[_P6]
+            if not (alpha > 0.0):
+                stats[4, rc, c] = _SINGULAR
+                continue
+            sol[0, rc, c] = p[_P0] / alpha
+            sol[1, rc, c] = p[_P1] / alpha
+            sol[6, rc, c] = alpha
+            sol[7, rc, c] = p[_P7]
+            stats[4, rc, c] = _ACCEPTED
+            if not final:
+                continue
+            sol[2, rc, c] = p[_P2] / alpha
+            sol[3, rc, c] = p[_P3] / alpha
+            sol[4, rc, c] = p[_P4] / alpha
+            sol[5, rc, c] = p[_P5] / alpha
+            ssr = s[36]
+            for k in range(8):
+                ssr -= p[k] * rhs[k]
+            s02 = max(ssr, 0.0) / (cnt - 8.0) / (alpha * alpha)
+            # the precision from the normal matrix of the smooth gradients, as in ALSC: the
+            # slopes of the interpolant carry twice the noise and would make sigma optimistic
+            _precision_sums(vsum, rrel, j, s2)
+            _assemble(s2, 0.0, 0.0, nmat, rhs2)
+            if not _cholesky(nmat, scale, chol):
+                stats[4, rc, c] = _SINGULAR
+                continue
+            # shift block of N^-1 = (L22 L22^T)^-1 for the last 2x2 block L22 of the (scaled) factor
+            l66 = chol[6, 6]
+            l76 = chol[7, 6]
+            l77 = chol[7, 7]
+            i00 = 1.0 / l66
+            i10 = -l76 / (l66 * l77)
+            i11 = 1.0 / l77
+            cxx = s02 * (i00 * i00 + i10 * i10) * scale[6] * scale[6]
+            cxy = s02 * (i10 * i11) * scale[6] * scale[7]
+            cyy = s02 * (i11 * i11) * scale[7] * scale[7]
+            stats[0, rc, c] = math.sqrt(max(cxx, 0.0))
+            stats[1, rc, c] = math.sqrt(max(cyy, 0.0))
+            stats[2, rc, c] = cxy
+            st, stt, sti, si, sii = s[37], s[36], s[42], s[43], s[44]
+            vt = stt - st * st / cnt
+            vi = sii - si * si / cnt
+            stats[3, rc, c] = (sti - st * si / cnt) / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
+
+
+class FieldLsqResult:
+    """Per-pixel result of :func:`field_lsq` on the window grid.
+
+    Attributes
+    ----------
+    x, y : float64 (h, w)
+        Final positions in the distorted window's frame (the start where never updated).
+    affine : float64 (4, h, w)
+        ``b11, b12, b21, b22``, the Jacobian of the position minus the identity, of the last evaluation.
+    gain, offset : float64 (h, w)
+        Radiometry of the last evaluation, ``base ~ gain dist + offset`` as in ALSC.
+    sigma_x, sigma_y, rho : float64 (h, w)
+    step : float64 (h, w)
+        Length of the last ``(x, y)`` update.
+    code : int8 (h, w)
+        :class:`~geocoder.kernels.alsc.Exit` code, -1 where not tried.
+    """
+
+    def __init__(self, x, y, affine, gain, offset, sigma_x, sigma_y, rho, step, code):
+        self.x, self.y, self.affine, self.gain, self.offset = x, y, affine, gain, offset
+        self.sigma_x, self.sigma_y, self.rho, self.step, self.code = sigma_x, sigma_y, rho, step, code
+
+
+@numba.njit(nogil=True, cache=True)
+def _accept(sol, stats, px, py, x0, y0, step, eligible, region, tol, max_shift, min_rho, max_sigma, min_det,
+            code):  # pragma: no cover - compiled
+    r0, r1, c0, c1 = region
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            if not eligible[r, c]:
+                code[r, c] = _NOT_TRIED
+                continue
+            k = int(stats[4, r, c])
+            if k != _ACCEPTED:
+                code[r, c] = k
+                continue
+            if not (step[r, c] < tol):
+                code[r, c] = _NOT_CONVERGED
+                continue
+            dx = px[r, c] - x0[r, c]
+            dy = py[r, c] - y0[r, c]
+            if dx * dx + dy * dy > max_shift * max_shift:
+                code[r, c] = _MOVED
+                continue
+            det = (1.0 + sol[2, r, c]) * (1.0 + sol[5, r, c]) - sol[3, r, c] * sol[4, r, c]  # I + Jacobian of q
+            if not (det >= min_det and det * min_det <= 1.0):
+                code[r, c] = _DEGENERATE
+                continue
+            if not (stats[3, r, c] >= min_rho):
+                code[r, c] = _LOW_CORRELATION
+                continue
+            sx = stats[0, r, c]
+            sy = stats[1, r, c]
+            cxy = stats[2, r, c]
+            half = 0.5 * (sx * sx - sy * sy)
+            largest = 0.5 * (sx * sx + sy * sy) + math.sqrt(half * half + cxy * cxy)
+            if not (largest <= max_sigma * max_sigma):
+                code[r, c] = _IMPRECISE
+                continue
+            code[r, c] = _ACCEPTED
+
+
+@numba.njit(nogil=True, cache=True)
+def _update(sol, stats, px, py, step, region):  # pragma: no cover - compiled
+    r0, r1, c0, c1 = region
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            if stats[4, r, c] == _ACCEPTED:
+                tx = sol[0, r, c]
+                ty = sol[1, r, c]
+                px[r, c] += tx
+                py[r, c] += ty
+                step[r, c] = math.sqrt(tx * tx + ty * ty)
+            else:
+                step[r, c] = np.inf
+
+
+def field_lsq(
+    base: np.ndarray,
+    dist: np.ndarray,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    eligible: np.ndarray,
+    region: tuple[int, int, int, int],
+    *,
+    radius: int = 25,
+    radius_y: int = 3,
+    iterations: int = 3,
+    tol: float = 0.05,
+    max_shift: float = 0.5,
+    min_rho: float = 0.7,
+    max_sigma: float = 0.1,
+    min_det: float = 0.5,
+    min_fill: float = 0.5,
+) -> FieldLsqResult:
+    """Least-squares match of every eligible pixel of ``region``, starting from ``(x0, y0)``.
+
+    Parameters
+    ----------
+    base : 2-D float array (h, w)
+        Base window; templates are cut from it.
+    dist : 2-D float array
+        Distorted window.
+    x0, y0 : float (h, w)
+        Start positions in the distorted window's frame for every pixel of the base window
+        (needed wherever a template of a pixel of ``region`` may reach after ``iterations``
+        rounds, i.e. ``region`` grown by ``iterations`` template half-sizes).
+    eligible : bool (h, w)
+        Pixels whose start is trusted: only they take part in templates and are matched.
+    region : (row0, row1, col0, col1)
+        The pixels whose result is wanted (half open).
+    radius, radius_y : int
+        Template half-width (columns) and half-height (rows).
+    iterations : int
+        Resampling rounds; each moves every solved pixel of a region that shrinks by one
+        template half-size per round, so the result inside ``region`` depends only on data
+        within ``iterations`` half-sizes of it.
+    tol : float
+        Largest length (px) of the last move of an accepted pixel.
+    max_shift, min_rho, max_sigma, min_det : float
+        Acceptance tests as in :class:`geocoder.kernels.alsc.AlscOptions` (``max_shift``
+        measured from the start, ``min_det`` on ``det(I + c / alpha)``, the affine correction).
+    min_fill : float
+        Smallest share of a template's pixels that must be eligible (with finite samples);
+        the others are left out of its sums.
+
+    Returns
+    -------
+    FieldLsqResult
+    """
+    if iterations < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    h, w = base.shape
+    t = np.asarray(base, dtype=np.float64)
+    # grey values of O(1) keep the window sums well conditioned (gain and offset absorb the scale)
+    tm, ts = _location_scale(t)
+    t = (t - tm) / ts
+    d = np.asarray(dist, dtype=np.float64)
+    dm, ds = _location_scale(d)
+    d = (d - dm) / ds
+    cgx, cgy = _gradients(d)
+    px = np.array(x0, dtype=np.float64)
+    py = np.array(y0, dtype=np.float64)
+    weight = np.asarray(eligible, dtype=np.bool_) & np.isfinite(px) & np.isfinite(py)
+    cols = np.arange(w)[None, :]
+    rows = np.arange(h)[:, None]
+    qx = float(np.median((px - cols)[weight])) if weight.any() else 0.0
+    qy = float(np.median((py - rows)[weight])) if weight.any() else 0.0
+    iw = np.full((h, w), np.nan)
+    gxw = np.full((h, w), np.nan)
+    gyw = np.full((h, w), np.nan)
+    cxw = np.full((h, w), np.nan)
+    cyw = np.full((h, w), np.nan)
+    sol = np.full((8, h, w), np.nan)
+    stats = np.full((5, h, w), np.nan)
+    step = np.full((h, w), np.inf)
+    r0, r1, c0, c1 = region
+    for it in range(iterations):
+        grow = iterations - 1 - it
+        reg = np.array([max(r0 - grow * radius_y, 0), min(r1 + grow * radius_y, h),
+                        max(c0 - grow * radius, 0), min(c1 + grow * radius, w)], dtype=np.int64)
+        warp = np.array([max(reg[0] - radius_y, 0), min(reg[1] + radius_y, h),
+                         max(reg[2] - radius, 0), min(reg[3] + radius, w)], dtype=np.int64)
+        final = it == iterations - 1
+        _warp(d, px, py, warp, iw, gxw, gyw)
+        if final:
+            _sample(cgx, px, py, warp, cxw)
+            _sample(cgy, px, py, warp, cyw)
+        _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, reg, radius, radius_y, min_fill, final,
+                      sol, stats)
+        _update(sol, stats, px, py, step, reg)
+    code = np.full((h, w), _NOT_TRIED, dtype=np.int8)
+    x0f = np.asarray(x0, dtype=np.float64)
+    y0f = np.asarray(y0, dtype=np.float64)
+    _accept(sol, stats, px, py, x0f, y0f, step, weight, np.array(region, dtype=np.int64), tol, max_shift, min_rho,
+            max_sigma, min_det, code)
+    sl = (slice(r0, r1), slice(c0, c1))
+    gain = sol[6][sl] * ts / ds  # base ~ gain dist + offset, as in ALSC
+    offset = tm + ts * sol[7][sl] - gain * dm
+    return FieldLsqResult(
+        px[sl], py[sl], sol[2:6, r0:r1, c0:c1], gain, offset, stats[0][sl], stats[1][sl], stats[3][sl], step[sl],
+        code[sl],
+    )
+
+
+def _location_scale(a: np.ndarray) -> tuple[float, float]:
+    v = a[np.isfinite(a)]
+    if v.size == 0:
+        return 0.0, 1.0
+    m = float(v.mean())
+    s = float(v.std())
+    return m, (s if s > 0 else 1.0)
+
+
+def template_solution_reference(t, iw, gxw, gyw, px, py, row: int, col: int, radius: int, radius_y: int):
+    """The least-squares solution of one template from its design matrix (numpy; for tests).
+
+    Same model and inputs as the kernel (normalised grey values, warped image and slopes);
+    returns ``(dx, dy, b11, b12, b21, b22, gain, offset)`` as the kernel's ``sol``.
+    """
+    sl = (slice(row - radius_y, row + radius_y + 1), slice(col - radius, col + radius + 1))
+    v, u = np.mgrid[-radius_y : radius_y + 1, -radius : radius + 1]
+    r, c = np.mgrid[sl]
+    gx, gy, tt, i, x, y = (np.asarray(a, dtype=np.float64)[sl].ravel() for a in (gxw, gyw, t, iw, px, py))
+    qx = x - c.ravel() - (px[row, col] - col)
+    qy = y - r.ravel() - (py[row, col] - row)
+    yp = i - gx * qx - gy * qy
+    u, v = u.ravel().astype(float), v.ravel().astype(float)
+    a = np.column_stack([gx, gy, u * gx, v * gx, u * gy, v * gy, yp, np.ones_like(tt)])
+    theta = np.linalg.lstsq(a, tt, rcond=None)[0]
+    alpha = theta[6]
+    return np.r_[theta[:6] / alpha, alpha, theta[7]]

@@ -1,0 +1,148 @@
+"""Tests of geocoder.kernels.fieldlsq (least squares of every pixel from window sums) and
+geocoder.match.densify (starts from the lattice), against the truth of a known warp of a
+real Sentinel-2 crop and against the per-template numpy reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import read_band
+
+from geocoder.kernels import fieldlsq
+from geocoder.kernels.alsc import AlscOptions, alsc
+from geocoder.kernels.fieldlsq import field_lsq, template_solution_reference
+from geocoder.match.densify import lattice_start
+from geocoder.simulate.warp import make_pair
+
+S2 = "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif"
+SIZE = 320
+REGION = (40, SIZE - 40, 90, SIZE - 90)
+OPTS = AlscOptions(radius=25, radius_y=3, max_shift=0.5, max_sigma=0.1, tol=2e-4, max_iter=30)
+
+
+@pytest.fixture(scope="module")
+def case(shared_data):
+    """A real crop warped by affine + quadratic + scan-line turbulence, and a start near the truth."""
+    margin = 32
+    src = read_band(shared_data / S2, 1, (300, 300 + SIZE + 2 * margin, 1100, 1100 + SIZE + 2 * margin))
+    pair = make_pair(src, shape=(SIZE, SIZE), seed=21, margin=margin, turbulence=(1.0, 3.0))
+    ys, xs = np.mgrid[0:SIZE, 0:SIZE]
+    tx, ty = xs + pair.dx, ys + pair.dy
+    rng = np.random.default_rng(0)
+    # smooth error along the lines plus an independent error per line (as between lattice matches)
+    x0 = tx + 0.05 * np.sin(xs / 40.0) + 0.02 * rng.standard_normal((SIZE, 1))
+    y0 = ty + 0.04 * np.cos(ys / 9.0 + xs / 70.0) + 0.02 * rng.standard_normal((SIZE, 1))
+    return pair, tx, ty, x0, y0
+
+
+def _errors(res, tx, ty, region=REGION):
+    sl = (slice(region[0], region[1]), slice(region[2], region[3]))
+    return res.x - tx[sl], res.y - ty[sl]
+
+
+def test_every_pixel_against_truth_and_alsc(case):
+    """As accurate as ALSC on the same pixels from the same starts, and sigma calibrated."""
+    pair, tx, ty, x0, y0 = case
+    base, dist = pair.base[0], pair.distorted[0]
+    res = field_lsq(base, dist, x0, y0, np.ones((SIZE, SIZE), bool), REGION)
+    ex, ey = _errors(res, tx, ty)
+    ok = res.code == 0
+    assert ok.mean() > 0.5
+    rmse = np.sqrt(np.mean(ex[ok] ** 2 + ey[ok] ** 2))
+    assert rmse < 0.1
+    assert np.hypot(ex, ey)[ok].max() < 0.6
+    for e, s in ((ex, res.sigma_x), (ey, res.sigma_y)):
+        ratio = np.sqrt(np.mean(e[ok] ** 2)) / np.sqrt(np.mean(s[ok] ** 2))
+        assert 0.67 <= ratio <= 1.5
+    # ALSC from the same starts on a sample of pixels
+    rng = np.random.default_rng(1)
+    rows = rng.integers(REGION[0], REGION[1], 1500)
+    cols = rng.integers(REGION[2], REGION[3], 1500)
+    init = np.zeros((rows.size, 8))
+    init[:, 0], init[:, 1] = x0[rows, cols], y0[rows, cols]
+    init[:, 2] = init[:, 5] = init[:, 7] = 1.0
+    ref = alsc(base, dist, cols, rows, init, options=OPTS)
+    both = (ref.exit == 0) & ok[rows - REGION[0], cols - REGION[2]]
+    assert both.mean() > 0.4
+    e_alsc = np.hypot(ref.x - tx[rows, cols], ref.y - ty[rows, cols])[both]
+    e_field = np.hypot(ex, ey)[rows - REGION[0], cols - REGION[2]][both]
+    assert np.sqrt(np.mean(e_field**2)) <= 1.05 * np.sqrt(np.mean(e_alsc**2))
+
+
+def test_kernel_solution_equals_design_matrix_reference(case):
+    """The window sums (prefix sums along rows, running sums down, algebraic centring) give
+    the least-squares solution of each template's own design matrix."""
+    pair, tx, ty, x0, y0 = case
+    base = pair.base[0].astype(np.float64)
+    dist = pair.distorted[0].astype(np.float64)
+    t = (base - base.mean()) / base.std()
+    d = (dist - np.nanmean(dist)) / np.nanstd(dist)
+    h, w = t.shape
+    iw, gx, gy = (np.full((h, w), np.nan) for _ in range(3))
+    whole = np.array([0, h, 0, w], dtype=np.int64)
+    fieldlsq._warp(d, x0, y0, whole, iw, gx, gy)
+    sol = np.full((8, h, w), np.nan)
+    stats = np.full((5, h, w), np.nan)
+    qx, qy = 3.7, -1.2  # any reference: the centring is exact
+    region = np.array(REGION, dtype=np.int64)
+    fieldlsq._solve_window(t, iw, gx, gy, gx, gy, x0, y0, qx, qy, np.ones((h, w), bool), region, 25, 3, 1.0,
+                           True, sol, stats)
+    for r, c in [(40, 90), (100, 150), (279, 229), (200, 100)]:
+        ref = template_solution_reference(t, iw, gx, gy, x0, y0, r, c, 25, 3)
+        np.testing.assert_allclose(sol[:, r, c], ref, rtol=1e-6, atol=1e-9)
+
+
+def test_result_depends_only_on_its_halo(case):
+    """After n rounds a pixel depends on starts within n template half-sizes only: a window cut
+    to that halo gives the same result (what makes the dense field independent of the tiling)."""
+    pair, tx, ty, x0, y0 = case
+    base, dist = pair.base[0], pair.distorted[0]
+    n = 3
+    core = (120, 180, 130, 190)
+    res = field_lsq(base, dist, x0, y0, np.ones((SIZE, SIZE), bool), core, iterations=n)
+    r0, r1, c0, c1 = core[0] - n * 3 - 3, core[1] + n * 3 + 3, core[2] - n * 25 - 25, core[3] + n * 25 + 25
+    sub = (slice(r0, r1), slice(c0, c1))
+    # the distorted window is the same array; only the base window and the starts are cut
+    cut = field_lsq(base[sub], dist, x0[sub], y0[sub], np.ones((r1 - r0, c1 - c0), bool),
+                    (core[0] - r0, core[1] - r0, core[2] - c0, core[3] - c0), iterations=n)
+    assert (cut.code == res.code).all()
+    ok = res.code == 0
+    assert ok.mean() > 0.5
+    # the grey-value normalisation differs between the windows: equal to round-off
+    np.testing.assert_allclose(cut.x[ok], res.x[ok], atol=1e-6)
+    np.testing.assert_allclose(cut.y[ok], res.y[ok], atol=1e-6)
+
+
+def test_untrusted_pixels_are_not_matched_nor_used(case):
+    pair, tx, ty, x0, y0 = case
+    eligible = np.ones((SIZE, SIZE), bool)
+    eligible[150:160, 150:250] = False
+    bad_x = x0.copy()
+    bad_x[150:160, 150:250] += 5.0  # wrong starts that must not enter any template
+    res = field_lsq(pair.base[0], pair.distorted[0], bad_x, y0, eligible, REGION)
+    ref = field_lsq(pair.base[0], pair.distorted[0], x0, y0, eligible, REGION)
+    hole = (slice(150 - REGION[0], 160 - REGION[0]), slice(150 - REGION[2], 230 - REGION[2]))
+    assert (res.code[hole] == -1).all()
+    np.testing.assert_array_equal(res.code, ref.code)
+    ok = res.code == 0
+    np.testing.assert_allclose(res.x[ok], ref.x[ok], atol=1e-9)
+
+
+def test_lattice_start_interpolates_along_lines():
+    h, w = 3, 40
+    xs = np.tile(np.arange(w, dtype=float), (h, 1))
+    x = xs + 2.0 + 0.01 * xs  # the field along a line: 2 + 0.01 x
+    y = np.full((h, w), 5.0)
+    a11 = np.full((h, w), 1.01)
+    a21 = np.zeros((h, w))
+    matched = np.zeros((h, w), bool)
+    matched[0, [0, 8, 24]] = True  # column 16 failed: 8 .. 24 bridged
+    matched[1, [32]] = True  # one match: extended by its affine
+    x0, y0, started = lattice_start(x, y, a11, a21, matched, max_gap=16, max_extend=4)
+    assert started[0, :29].all() and not started[0, 29:].any()  # the run ends at 24, extended by 4
+    np.testing.assert_allclose(x0[0, :29], x[0, :29])
+    assert started[1, 28:37].all() and not started[1, :28].any() and not started[1, 37:].any()
+    np.testing.assert_allclose(x0[1, 28:37], x[1, 28:37])
+    assert not started[2].any()
+    x0, _, started = lattice_start(x, y, a11, a21, matched, max_gap=8, max_extend=0)
+    assert not started[0, 9:24].any()
