@@ -30,6 +30,7 @@ import zarr
 
 from ..kernels.alsc import FIELDS, AlscOptions, gradients
 from ..kernels.polynomial import PolyMap
+from ..match.densify import densify_window, lattice_start
 from ..match.fill import fill_window
 from ..match.grow import NFIELDS, UNVISITED, grow_window
 from ..match.tiepoints import TiePoints
@@ -49,20 +50,27 @@ class DenseOptions:
         the scan line, where the distortion is smooth, and short across it, where roll and
         pitch change from line to line (a square template of the same area averages the
         line-to-line turbulence and biases the match by 0.1-0.3 px; see the issue notes).
-    halo : width (px) of the band around a tile in which it may grow into its neighbours.
+    halo : width (px) of the band around a tile in which it may grow into its neighbours
+        (at least ``col_step``, so that the lattice reaches into the neighbours).
     step : lattice spacing of the matches (1 = every pixel).
     col_step : with ``step = 1``: the region growing (full Gauss-Newton matches, halo exchange)
         runs on every row but only on every ``col_step``-th column (global lattice); after
-        the last round one pass per tile matches the columns between by one verified
-        Gauss-Newton step from the interpolation of their two lattice neighbours on the scan
-        line (a full match where that step is not short, or where only one neighbour
-        matched). 1 = full matches everywhere. See :mod:`geocoder.match.fill`. Measured on the
-        2048^2 bench pair: col_step=4 doubles the dense stage's speed again at the same RMSE
-        and coverage; not the default because in ambiguous spots (0.1-0.4 px off the truth
-        whatever the path) the lattice growth lands in another local minimum for another
-        tiling more often than full growth does (13 of 696k pixels > 0.01 px apart in
-        tests/test_dense.py::test_dense_does_not_depend_on_tiling, whose bound is 0.01).
-    fill_step_tol : largest ``(x, y)`` step (px) accepted after the one step of a filled pixel.
+        the last round one pass per tile matches the pixels between (``densify``). 1 = full
+        matches everywhere, the region growing alone. Default 16: along a scan line the field
+        is smooth, so the lattice carries the line-to-line turbulence and the dense pass does
+        the rest at a fraction of the cost (bench_speed.py: the dense stage 4.9x faster at
+        2048^2, the same RMSE on matched pixels).
+    fill_step_tol : largest ``(x, y)`` step (px) accepted after the one step of a pixel filled
+        by ``densify="step"``.
+    densify : how the pixels between the lattice columns are matched when ``col_step > 1``:
+        ``"field"`` (every pixel of a tile at once, least squares from window sums on the
+        distorted image resampled at the lattice's interpolation along the lines;
+        :mod:`geocoder.match.densify`) or ``"step"`` (one verified Gauss-Newton step per
+        pixel from its two lattice neighbours; :mod:`geocoder.match.fill`).
+    densify_iterations : resampling rounds of ``"field"``.
+    densify_tol : largest last move (px) of a pixel accepted by ``"field"``.
+    densify_gap, densify_extend : how far (px) ``"field"`` interpolates the lattice along a
+        scan line between two matches, and extends it past the last one, for the starts.
     neighbours : 4 or 8.
     max_tries : attempts per pixel from different neighbours within one task.
     max_rounds : limit of halo-exchange rounds.
@@ -70,10 +78,15 @@ class DenseOptions:
     """
 
     alsc: AlscOptions = field(default_factory=lambda: AlscOptions(radius=25, radius_y=3, max_shift=0.5, max_sigma=0.1, tol=2e-4, max_iter=30))
-    halo: int = 4
+    halo: int = 16
     step: int = 1
-    col_step: int = 1
+    col_step: int = 16
     fill_step_tol: float = 0.05
+    densify: str = "field"
+    densify_iterations: int = 3
+    densify_tol: float = 0.05
+    densify_gap: int = 128
+    densify_extend: int = 32
     neighbours: int = 4
     max_tries: int = 2
     max_rounds: int = 12
@@ -88,6 +101,14 @@ class DenseOptions:
             raise ValueError(f"col_step ({self.col_step}) must not exceed the halo ({self.halo})")
         if not self.fill_step_tol > 0:
             raise ValueError(f"fill_step_tol must be positive, got {self.fill_step_tol!r}")
+        if self.densify not in ("field", "step"):
+            raise ValueError(f"densify must be 'field' or 'step', got {self.densify!r}")
+        if int(self.densify_iterations) != self.densify_iterations or self.densify_iterations < 1:
+            raise ValueError(f"densify_iterations must be a positive integer, got {self.densify_iterations!r}")
+        if not self.densify_tol > 0:
+            raise ValueError(f"densify_tol must be positive, got {self.densify_tol!r}")
+        if self.densify_gap < 0 or self.densify_extend < 0:
+            raise ValueError(f"densify_gap and densify_extend must be >= 0, got {self.densify_gap}, {self.densify_extend}")
 
 
 @dataclass(frozen=True)
@@ -255,7 +276,10 @@ def grow_tiles(
         pending = {k: np.concatenate(v) for k, v in nxt.items()}
         if job is not None:
             job.save(f"dense-round-{rnd + 1}", (pending, slots, per_round))
-    if opts.col_step > 1:
+    if opts.col_step > 1 and opts.densify == "field":
+        slots = _densify_tiles(base_reader, dist_reader, grid, mapping, state, slots, band=band, dist_band=dist_band,
+                               opts=opts, job=job)
+    elif opts.col_step > 1:
         slots = _fill_tiles(base_reader, dist_reader, grid, mapping, state, slots, band=band, dist_band=dist_band,
                             opts=opts, job=job)
     return DenseResult(state, rounds, not pending, per_round, _slot_grid(grid, slots))
@@ -343,6 +367,85 @@ def _fill_tiles(base_reader: WindowReader, dist_reader: WindowReader, grid: Tile
     return slots
 
 
+def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: WindowReader, band: int, dist_band: int,
+                  state: str, slots: np.ndarray, grid: TileGrid, mapping: PolyMap, opts: DenseOptions):
+    """Match every pixel of one tile's core from the lattice (:mod:`geocoder.match.densify`).
+
+    Reads the lattice matches of the core grown by the templates of every resampling round
+    (and by ``densify_gap`` columns more for the interpolation along the lines), every tile
+    from its current slot; writes the core to the other slot, every pixel from the dense
+    pass (a lattice match that it rejects is rejected). Returns ``(matches, whether it wrote)``.
+    """
+    h, w = shape
+    k, n = opts.col_step, opts.densify_iterations
+    rx, ry = opts.alsc.radius, opts.alsc.ry
+    br0, br1 = max(tile.row0 - n * ry, 0), min(tile.row1 + n * ry, h)
+    bc0, bc1 = max(tile.col0 - n * rx, 0), min(tile.col1 + n * rx, w)
+    reach = max(opts.densify_gap, opts.densify_extend)
+    sc0, sc1 = max(bc0 - reach, 0), min(bc1 + reach, w)
+    f, scode = _read_state(state, slots, grid, br0, br1, sc0, sc1, fields=_START_FIELDS)
+    cols = np.arange(sc0, sc1)
+    matched = (scode == 0) & (cols % k == 0)[None, :]
+    if not matched[tile.row0 - br0 : tile.row1 - br0].any():
+        return 0, False
+    x0, y0, started = lattice_start(f[0] + cols[None, :], f[1] + np.arange(br0, br1)[:, None], f[2], f[3], matched,
+                                    max_gap=opts.densify_gap, max_extend=opts.densify_extend)
+    wsl = (slice(None), slice(bc0 - sc0, bc1 - sc0))
+    x0, y0, started = x0[wsl], y0[wsl], started[wsl]
+    base = base_reader.read(br0, br1, bc0, bc1)[band]
+    dwin = distorted_window(Tile(0, 0, br0, br1, bc0, bc1), mapping, opts.margin)
+    dr0, dc0 = dwin[0], dwin[2]
+    dist = dist_reader.read(*dwin)[dist_band]
+    region = (tile.row0 - br0, tile.row1 - br0, tile.col0 - bc0, tile.col1 - bc0)
+    res = densify_window(base, dist, x0 - dc0, y0 - dr0, started, region, options=opts.alsc,
+                         iterations=n, tol=opts.densify_tol)
+    out = np.full((NFIELDS, *res.code.shape), np.nan, dtype=np.float32)
+    out[0] = res.x + dc0 - np.arange(tile.col0, tile.col1)[None, :]
+    out[1] = res.y + dr0 - np.arange(tile.row0, tile.row1)[:, None]
+    out[2] = 1.0 + res.affine[0]
+    out[3] = res.affine[1]
+    out[4] = res.affine[2]
+    out[5] = 1.0 + res.affine[3]
+    out[6] = res.offset
+    out[7] = res.gain
+    out[8], out[9], out[10] = res.sigma_x, res.sigma_y, res.rho
+    out[11] = n
+    code = res.code
+    slot = int(slots[tile.iy, tile.ix])
+    g = zarr.open_group(state, mode="r+")
+    g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out
+    g["code"][1 - slot, tile.row0 : tile.row1, tile.col0 : tile.col1] = code
+    return int((code == 0).sum()), True
+
+
+def _densify_tiles(base_reader: WindowReader, dist_reader: WindowReader, grid: TileGrid, mapping: PolyMap, state: str,
+                   slots: dict[str, int], *, band: int, dist_band: int, opts: DenseOptions,
+                   job: Job | None) -> dict[str, int]:
+    """One densifying pass over every tile after the last round; returns the new slots."""
+    if job is not None and job.done("dense-densified"):
+        return job.load("dense-densified")
+    shape = (grid.height, grid.width)
+    tiles = {t.key: t for t in grid}
+    sgrid = _slot_grid(grid, slots)
+    token = dask.base.tokenize(state, slots, "densify", opts)
+    tasks = {
+        k: dask.delayed(_densify_task, pure=False)(
+            tiles[k], shape, base_reader, dist_reader, band, dist_band, state, sgrid, grid, mapping, opts,
+            dask_key_name=f"densify-{k}-{token}",
+        )
+        for k in sorted(tiles)
+    }
+    results = run_tiles(job, "dense-densify", tasks, phase="dense matching (every pixel)")
+    slots = dict(slots)
+    for k, (_, wrote) in results.items():
+        if wrote:
+            slots[k] = 1 - slots[k]
+    log.info("dense densify: %d matches", int(sum(r[0] for r in results.values())))
+    if job is not None:
+        job.save("dense-densified", slots)
+    return slots
+
+
 def _slot_grid(grid: TileGrid, slots: dict[str, int]) -> np.ndarray:
     out = np.zeros((len(grid.rows), len(grid.cols)), dtype=np.int8)
     for t in grid:
@@ -351,25 +454,29 @@ def _slot_grid(grid: TileGrid, slots: dict[str, int]) -> np.ndarray:
 
 
 _OUT_FIELDS = tuple(FIELDS.index(n) for n in ("x", "y", "sigma_x", "sigma_y", "rho"))
+_START_FIELDS = tuple(FIELDS.index(n) for n in ("x", "y", "a11", "a21"))
 
 
 def _read_state(state: str, slots: np.ndarray, grid: TileGrid, r0: int, r1: int, c0: int, c1: int,
                 fields: tuple[int, ...] = _OUT_FIELDS) -> tuple[np.ndarray, np.ndarray]:
     """Fields (default ``x, y, sigma_x, sigma_y, rho``: (5, h, w)) and ``code`` (h, w) of a
-    window inside one tile row, every tile's part from its current slot."""
+    window of the state, every tile's part from its current slot."""
     g = zarr.open_group(state, mode="r")
     redges = np.r_[0, np.cumsum(grid.rows)]
     cedges = np.r_[0, np.cumsum(grid.cols)]
-    iy = int(np.searchsorted(redges, r0, side="right") - 1)
     out = np.empty((len(fields), r1 - r0, c1 - c0), dtype=np.float32)
     code = np.empty((r1 - r0, c1 - c0), dtype=np.int8)
-    for ix in range(len(grid.cols)):
-        a, b = max(c0, int(cedges[ix])), min(c1, int(cedges[ix + 1]))
-        if a >= b:
+    for iy in range(len(grid.rows)):
+        ra, rb = max(r0, int(redges[iy])), min(r1, int(redges[iy + 1]))
+        if ra >= rb:
             continue
-        slot = int(slots[iy, ix])
-        out[:, :, a - c0 : b - c0] = g["fields"][slot, list(fields), r0:r1, a:b]
-        code[:, a - c0 : b - c0] = g["code"][slot, r0:r1, a:b]
+        for ix in range(len(grid.cols)):
+            a, b = max(c0, int(cedges[ix])), min(c1, int(cedges[ix + 1]))
+            if a >= b:
+                continue
+            slot = int(slots[iy, ix])
+            out[:, ra - r0 : rb - r0, a - c0 : b - c0] = g["fields"][slot, list(fields), ra:rb, a:b]
+            code[ra - r0 : rb - r0, a - c0 : b - c0] = g["code"][slot, ra:rb, a:b]
     return out, code
 
 

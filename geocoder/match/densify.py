@@ -1,0 +1,114 @@
+"""Every pixel from the lattice: start field along the scan lines, then one least-squares pass.
+
+Region growing (:mod:`geocoder.match.grow`) with ``col_step = k`` matches every scan line
+but only every k-th column. Along a line the field is smooth (the turbulence of a scanner is
+shared by the whole line), so the pixels between two matched lattice columns start from the
+linear interpolation of their positions, also across untextured stretches where the lattice
+failed (up to ``max_gap``); beyond the last matched lattice column of a run the start follows
+that match's affine (up to ``max_extend``). Every started pixel is then
+matched by :func:`geocoder.kernels.fieldlsq.field_lsq`: the normal equations of all
+templates at once from window sums on the distorted image resampled at the start field,
+with ALSC's acceptance tests and its covariance. A pixel with no matched lattice column
+near it on its line is not started and stays unmatched.
+
+All of it is numpy/numba on in-memory windows: no Dask, no I/O, no Python per pixel.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ..kernels.alsc import AlscOptions
+from ..kernels.fieldlsq import FieldLsqResult, field_lsq
+
+__all__ = ["lattice_start", "densify_window"]
+
+
+@numba.njit(nogil=True, cache=True)
+def _lattice_start(x, y, a11, a21, matched, max_gap, max_extend, x0, y0, started):  # pragma: no cover - compiled
+    h, w = matched.shape
+    for r in range(h):
+        left = -1
+        # next matched lattice column at or after every column, found by a backward sweep
+        nxt = np.full(w, -1, dtype=np.int64)
+        following = -1
+        for c in range(w - 1, -1, -1):
+            if matched[r, c]:
+                following = c
+            nxt[c] = following
+        for c in range(w):
+            if matched[r, c]:
+                left = c
+            right = nxt[c]
+            if left >= 0 and right >= 0 and right - left <= max_gap:
+                if right == left:
+                    x0[r, c] = x[r, c]
+                    y0[r, c] = y[r, c]
+                else:
+                    f = (c - left) / (right - left)
+                    x0[r, c] = (1.0 - f) * x[r, left] + f * x[r, right]
+                    y0[r, c] = (1.0 - f) * y[r, left] + f * y[r, right]
+                started[r, c] = True
+            elif left >= 0 and c - left <= max_extend:
+                x0[r, c] = x[r, left] + a11[r, left] * (c - left)
+                y0[r, c] = y[r, left] + a21[r, left] * (c - left)
+                started[r, c] = True
+            elif right >= 0 and right - c <= max_extend:
+                x0[r, c] = x[r, right] - a11[r, right] * (right - c)
+                y0[r, c] = y[r, right] - a21[r, right] * (right - c)
+                started[r, c] = True
+
+
+def lattice_start(x: np.ndarray, y: np.ndarray, a11: np.ndarray, a21: np.ndarray, matched: np.ndarray, *,
+                  max_gap: int, max_extend: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Start positions of every pixel from the matched lattice pixels of its scan line.
+
+    Parameters
+    ----------
+    x, y, a11, a21 : float (h, w)
+        Positions and the first column of the affine of the lattice matches (read only where
+        ``matched``).
+    matched : bool (h, w)
+        Matched lattice pixels.
+    max_gap : int
+        Two matched pixels of a line at most this far apart (px) are interpolated: the
+        field along a scan line is smooth, and every start is verified by the match.
+    max_extend : int
+        Beyond the last matched pixel of a line, starts follow its affine this far (px).
+
+    Returns
+    -------
+    x0, y0 : float64 (h, w)
+        Start positions (NaN where not started).
+    started : bool (h, w)
+    """
+    h, w = matched.shape
+    x0 = np.full((h, w), np.nan)
+    y0 = np.full((h, w), np.nan)
+    started = np.zeros((h, w), dtype=np.bool_)
+    _lattice_start(np.asarray(x, np.float64), np.asarray(y, np.float64), np.asarray(a11, np.float64),
+                   np.asarray(a21, np.float64), np.asarray(matched, np.bool_), int(max_gap), int(max_extend),
+                   x0, y0, started)
+    return x0, y0, started
+
+
+def densify_window(
+    base: np.ndarray,
+    dist: np.ndarray,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    started: np.ndarray,
+    region: tuple[int, int, int, int],
+    *,
+    options: AlscOptions,
+    iterations: int,
+    tol: float,
+    min_fill: float = 0.5,
+) -> FieldLsqResult:
+    """Match every started pixel of ``region`` (see :func:`geocoder.kernels.fieldlsq.field_lsq`)."""
+    return field_lsq(
+        base, dist, x0, y0, started, region, radius=options.radius, radius_y=options.ry,
+        iterations=iterations, tol=tol, max_shift=options.max_shift, min_rho=options.min_rho,
+        max_sigma=options.max_sigma, min_det=options.min_det, min_fill=min_fill,
+    )
