@@ -111,7 +111,8 @@ def test_dense_lattice_fill_against_truth(shared_data, tmp_path, client):
     from geocoder.pipeline.register import RegisterOptions
 
     files = real_pair(shared_data, tmp_path, which="aerial", size=512, seed=21, turbulence=(1.0, 3.0))
-    full = dense_figures(register(files.base, files.distorted, tile=256, client=client), files.pair)
+    full_growth = RegisterOptions(matching=DenseOptions(col_step=1, halo=4))
+    full = dense_figures(register(files.base, files.distorted, tile=256, client=client, options=full_growth), files.pair)
     options = RegisterOptions(matching=DenseOptions(col_step=4, densify="step"))
     ds = register(files.base, files.distorted, tile=256, client=client, options=options)
     f = dense_figures(ds, files.pair)

@@ -146,3 +146,22 @@ def test_lattice_start_interpolates_along_lines():
     assert not started[2].any()
     x0, _, started = lattice_start(x, y, a11, a21, matched, max_gap=8, max_extend=0)
     assert not started[0, 9:24].any()
+
+
+def test_ldl_solve8_against_numpy():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        a = rng.normal(size=(30, 8)) * np.logspace(0, 3, 8)  # badly scaled columns, as the moments
+        nmat = a.T @ a
+        rhs = rng.normal(size=8)
+        sol = np.full(8, np.nan)
+        ok, d6, d7, l76 = fieldlsq._ldl_solve8(nmat, rhs, sol, True)
+        assert ok
+        np.testing.assert_allclose(sol, np.linalg.solve(nmat, rhs), rtol=1e-8)
+        inv = np.linalg.inv(nmat)[6:, 6:]
+        np.testing.assert_allclose([1 / d6 + l76**2 / d7, -l76 / d7, 1 / d7], [inv[0, 0], inv[0, 1], inv[1, 1]], rtol=1e-8)
+        part = np.full(8, np.nan)
+        fieldlsq._ldl_solve8(nmat, rhs, part, False)
+        np.testing.assert_allclose(part[4:], sol[4:], rtol=1e-12)
+    singular = np.ones((8, 8))
+    assert not fieldlsq._ldl_solve8(singular, np.ones(8), np.empty(8), True)[0]

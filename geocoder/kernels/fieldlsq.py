@@ -250,45 +250,154 @@ def _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, c0, c1, rx
 
 
 @numba.njit(nogil=True, cache=True)
-def _cholesky(nmat, scale, chol):  # pragma: no cover - compiled
-    """Cholesky factor of ``nmat`` scaled to a unit diagonal; False if not positive definite."""
-    n = nmat.shape[0]
-    for i in range(n):
-        d = nmat[i, i]
-        if not (d > 0.0 and d < np.inf):
-            return False
-        scale[i] = 1.0 / math.sqrt(d)
-    for j in range(n):
-        acc = nmat[j, j] * scale[j] * scale[j]
-        for k in range(j):
-            acc -= chol[j, k] * chol[j, k]
-        if not (acc > _MIN_PIVOT):
-            return False
-        ljj = math.sqrt(acc)
-        chol[j, j] = ljj
-        for i in range(j + 1, n):
-            acc = nmat[i, j] * scale[i] * scale[j]
-            for k in range(j):
-                acc -= chol[i, k] * chol[j, k]
-            chol[i, j] = acc / ljj
-    return True
+def _ldl_solve8(a, rhs, sol, full):  # pragma: no cover - compiled
+    """Solve the 8x8 system ``a sol = rhs`` by ``a = L D L^T``, written out in scalars.
 
-
-@numba.njit(nogil=True, cache=True)
-def _chol_solve(chol, scale, rhs, sol):  # pragma: no cover - compiled
-    n = chol.shape[0]
-    for i in range(n):
-        acc = rhs[i] * scale[i]
-        for k in range(i):
-            acc -= chol[i, k] * sol[k]
-        sol[i] = acc / chol[i, i]
-    for i in range(n - 1, -1, -1):
-        acc = sol[i]
-        for k in range(i + 1, n):
-            acc -= chol[k, i] * sol[k]
-        sol[i] = acc / chol[i, i]
-    for i in range(n):
-        sol[i] *= scale[i]
+    Straight-line code keeps the factor in registers (3x faster than the loops). A pivot must
+    exceed ``_MIN_PIVOT`` times its diagonal entry (the rule of a Cholesky factor scaled to a
+    unit diagonal), so no scaling and no square root are needed. Returns ``(ok, d6, d7, l76)``:
+    whether the factor exists, the last two pivots and the last sub-diagonal entry (the shift
+    block of the inverse is ``[[1/d6 + l76^2/d7, -l76/d7], [-l76/d7, 1/d7]]``). ``sol`` gets the
+    last four unknowns, all eight when ``full``.
+    """
+    a00 = a[0, 0]
+    if not (a00 > 0.0 and a00 < np.inf):
+        return False, 0.0, 0.0, 0.0
+    d0 = a00
+    if not (d0 > _MIN_PIVOT * a00):
+        return False, 0.0, 0.0, 0.0
+    i0 = 1.0 / d0
+    w10 = a[1, 0]
+    l10 = w10 * i0
+    w20 = a[2, 0]
+    l20 = w20 * i0
+    w30 = a[3, 0]
+    l30 = w30 * i0
+    w40 = a[4, 0]
+    l40 = w40 * i0
+    w50 = a[5, 0]
+    l50 = w50 * i0
+    w60 = a[6, 0]
+    l60 = w60 * i0
+    w70 = a[7, 0]
+    l70 = w70 * i0
+    a11 = a[1, 1]
+    if not (a11 > 0.0 and a11 < np.inf):
+        return False, 0.0, 0.0, 0.0
+    d1 = a11 - l10 * w10
+    if not (d1 > _MIN_PIVOT * a11):
+        return False, 0.0, 0.0, 0.0
+    i1 = 1.0 / d1
+    w21 = a[2, 1] - l20 * w10
+    l21 = w21 * i1
+    w31 = a[3, 1] - l30 * w10
+    l31 = w31 * i1
+    w41 = a[4, 1] - l40 * w10
+    l41 = w41 * i1
+    w51 = a[5, 1] - l50 * w10
+    l51 = w51 * i1
+    w61 = a[6, 1] - l60 * w10
+    l61 = w61 * i1
+    w71 = a[7, 1] - l70 * w10
+    l71 = w71 * i1
+    a22 = a[2, 2]
+    if not (a22 > 0.0 and a22 < np.inf):
+        return False, 0.0, 0.0, 0.0
+    d2 = a22 - l20 * w20 - l21 * w21
+    if not (d2 > _MIN_PIVOT * a22):
+        return False, 0.0, 0.0, 0.0
+    i2 = 1.0 / d2
+    w32 = a[3, 2] - l30 * w20 - l31 * w21
+    l32 = w32 * i2
+    w42 = a[4, 2] - l40 * w20 - l41 * w21
+    l42 = w42 * i2
+    w52 = a[5, 2] - l50 * w20 - l51 * w21
+    l52 = w52 * i2
+    w62 = a[6, 2] - l60 * w20 - l61 * w21
+    l62 = w62 * i2
+    w72 = a[7, 2] - l70 * w20 - l71 * w21
+    l72 = w72 * i2
+    a33 = a[3, 3]
+    if not (a33 > 0.0 and a33 < np.inf):
+        return False, 0.0, 0.0, 0.0
+    d3 = a33 - l30 * w30 - l31 * w31 - l32 * w32
+    if not (d3 > _MIN_PIVOT * a33):
+        return False, 0.0, 0.0, 0.0
+    i3 = 1.0 / d3
+    w43 = a[4, 3] - l40 * w30 - l41 * w31 - l42 * w32
+    l43 = w43 * i3
+    w53 = a[5, 3] - l50 * w30 - l51 * w31 - l52 * w32
+    l53 = w53 * i3
+    w63 = a[6, 3] - l60 * w30 - l61 * w31 - l62 * w32
+    l63 = w63 * i3
+    w73 = a[7, 3] - l70 * w30 - l71 * w31 - l72 * w32
+    l73 = w73 * i3
+    a44 = a[4, 4]
+    if not (a44 > 0.0 and a44 < np.inf):
+        return False, 0.0, 0.0, 0.0
+    d4 = a44 - l40 * w40 - l41 * w41 - l42 * w42 - l43 * w43
+    if not (d4 > _MIN_PIVOT * a44):
+        return False, 0.0, 0.0, 0.0
+    i4 = 1.0 / d4
+    w54 = a[5, 4] - l50 * w40 - l51 * w41 - l52 * w42 - l53 * w43
+    l54 = w54 * i4
+    w64 = a[6, 4] - l60 * w40 - l61 * w41 - l62 * w42 - l63 * w43
+    l64 = w64 * i4
+    w74 = a[7, 4] - l70 * w40 - l71 * w41 - l72 * w42 - l73 * w43
+    l74 = w74 * i4
+    a55 = a[5, 5]
+    if not (a55 > 0.0 and a55 < np.inf):
+        return False, 0.0, 0.0, 0.0
+    d5 = a55 - l50 * w50 - l51 * w51 - l52 * w52 - l53 * w53 - l54 * w54
+    if not (d5 > _MIN_PIVOT * a55):
+        return False, 0.0, 0.0, 0.0
+    i5 = 1.0 / d5
+    w65 = a[6, 5] - l60 * w50 - l61 * w51 - l62 * w52 - l63 * w53 - l64 * w54
+    l65 = w65 * i5
+    w75 = a[7, 5] - l70 * w50 - l71 * w51 - l72 * w52 - l73 * w53 - l74 * w54
+    l75 = w75 * i5
+    a66 = a[6, 6]
+    if not (a66 > 0.0 and a66 < np.inf):
+        return False, 0.0, 0.0, 0.0
+    d6 = a66 - l60 * w60 - l61 * w61 - l62 * w62 - l63 * w63 - l64 * w64 - l65 * w65
+    if not (d6 > _MIN_PIVOT * a66):
+        return False, 0.0, 0.0, 0.0
+    i6 = 1.0 / d6
+    w76 = a[7, 6] - l70 * w60 - l71 * w61 - l72 * w62 - l73 * w63 - l74 * w64 - l75 * w65
+    l76 = w76 * i6
+    a77 = a[7, 7]
+    if not (a77 > 0.0 and a77 < np.inf):
+        return False, 0.0, 0.0, 0.0
+    d7 = a77 - l70 * w70 - l71 * w71 - l72 * w72 - l73 * w73 - l74 * w74 - l75 * w75 - l76 * w76
+    if not (d7 > _MIN_PIVOT * a77):
+        return False, 0.0, 0.0, 0.0
+    i7 = 1.0 / d7
+    z0 = rhs[0]
+    z1 = rhs[1] - l10 * z0
+    z2 = rhs[2] - l20 * z0 - l21 * z1
+    z3 = rhs[3] - l30 * z0 - l31 * z1 - l32 * z2
+    z4 = rhs[4] - l40 * z0 - l41 * z1 - l42 * z2 - l43 * z3
+    z5 = rhs[5] - l50 * z0 - l51 * z1 - l52 * z2 - l53 * z3 - l54 * z4
+    z6 = rhs[6] - l60 * z0 - l61 * z1 - l62 * z2 - l63 * z3 - l64 * z4 - l65 * z5
+    z7 = rhs[7] - l70 * z0 - l71 * z1 - l72 * z2 - l73 * z3 - l74 * z4 - l75 * z5 - l76 * z6
+    x7 = z7 * i7
+    sol[7] = x7
+    x6 = z6 * i6 - (l76 * x7)
+    sol[6] = x6
+    x5 = z5 * i5 - (l65 * x6 + l75 * x7)
+    sol[5] = x5
+    x4 = z4 * i4 - (l54 * x5 + l64 * x6 + l74 * x7)
+    sol[4] = x4
+    if full:
+        x3 = z3 * i3 - (l43 * x4 + l53 * x5 + l63 * x6 + l73 * x7)
+        sol[3] = x3
+        x2 = z2 * i2 - (l32 * x3 + l42 * x4 + l52 * x5 + l62 * x6 + l72 * x7)
+        sol[2] = x2
+        x1 = z1 * i1 - (l21 * x2 + l31 * x3 + l41 * x4 + l51 * x5 + l61 * x6 + l71 * x7)
+        sol[1] = x1
+        x0 = z0 * i0 - (l10 * x1 + l20 * x2 + l30 * x3 + l40 * x4 + l50 * x5 + l60 * x6 + l70 * x7)
+        sol[0] = x0
+    return True, d6, d7, l76
 
 
 # row of each unknown (sx, sy, c11, c12, c21, c22, alpha, beta) in the normal equations: the shift last
@@ -303,32 +412,13 @@ _P7 = 5
 
 
 @numba.njit(nogil=True, cache=True)
-def _shift_solve(chol, scale, rhs, sol):  # pragma: no cover - compiled
-    """Like :func:`_chol_solve`, but the back substitution stops after the last four unknowns
-    (gain, offset and the shift)."""
-    n = chol.shape[0]
-    for i in range(n):
-        acc = rhs[i] * scale[i]
-        for k in range(i):
-            acc -= chol[i, k] * sol[k]
-        sol[i] = acc / chol[i, i]
-    for i in range(n - 1, n - 5, -1):
-        acc = sol[i]
-        for k in range(i + 1, n):
-            acc -= chol[k, i] * sol[k]
-        sol[i] = acc / chol[i, i]
-    for i in range(n - 4, n):
-        sol[i] *= scale[i]
-
-
-@numba.njit(nogil=True, cache=True)
 def _assemble(s, dx, dy, nmat, rhs):  # pragma: no cover - compiled
     """Normal equations of one template from its window sums ``s`` (layout in :func:`_centred_sums`).
 
     ``(dx, dy) = q(p) - q_ref`` moves the linearisation's reference to the template centre:
     ``y_p = y + g . (dx, dy)``. The unknowns ``sx, sy, c11, c12, c21, c22, alpha, beta``
     (index k) sit at row ``_Pk``: the shift last, so that its covariance block and its
-    solution come from the last rows of the Cholesky factor alone.
+    solution come from the last rows of the factor alone.
     """
     xx = 0
     xy = 6
@@ -497,8 +587,7 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
     s2 = np.empty(_NSUMS)
     rhs2 = np.empty(8)
     nmat = np.empty((8, 8))
-    chol = np.zeros((8, 8))
-    scale = np.empty(8)
+    e = np.empty(8)
     rhs = np.empty(8)
     p = np.empty(8)
     npix = float((2 * rx + 1) * (2 * ry + 1))
@@ -528,13 +617,10 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
             if cnt < min_count * npix or cnt <= 8.0:
                 continue
             _assemble(s, px[rc, c] - c - qx, py[rc, c] - rc - qy, nmat, rhs)
-            if not _cholesky(nmat, scale, chol):
+            ok, _, _, _ = _ldl_solve8(nmat, rhs, p, final)
+            if not ok:
                 stats[4, rc, c] = _SINGULAR
                 continue
-            if not final:
-                _shift_solve(chol, scale, rhs, p)
-            else:
-                _chol_solve(chol, scale, rhs, p)
             alpha = p[_P6]
             if not (alpha > 0.0):
                 stats[4, rc, c] = _SINGULAR
@@ -558,19 +644,14 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
             # slopes of the interpolant carry twice the noise and would make sigma optimistic
             _precision_sums(vsum, rrel, j, s2)
             _assemble(s2, 0.0, 0.0, nmat, rhs2)
-            if not _cholesky(nmat, scale, chol):
+            ok, d6, d7, lxy = _ldl_solve8(nmat, rhs2, e, False)
+            if not ok:
                 stats[4, rc, c] = _SINGULAR
                 continue
-            # shift block of N^-1 = (L22 L22^T)^-1 for the last 2x2 block L22 of the (scaled) factor
-            l66 = chol[6, 6]
-            l76 = chol[7, 6]
-            l77 = chol[7, 7]
-            i00 = 1.0 / l66
-            i10 = -l76 / (l66 * l77)
-            i11 = 1.0 / l77
-            cxx = s02 * (i00 * i00 + i10 * i10) * scale[6] * scale[6]
-            cxy = s02 * (i10 * i11) * scale[6] * scale[7]
-            cyy = s02 * (i11 * i11) * scale[7] * scale[7]
+            # shift block of N^-1 = (L22 D2 L22^T)^-1 for the last 2x2 blocks of the factor
+            cxx = s02 * (1.0 / d6 + lxy * lxy / d7)
+            cxy = -s02 * lxy / d7
+            cyy = s02 / d7
             stats[0, rc, c] = math.sqrt(max(cxx, 0.0))
             stats[1, rc, c] = math.sqrt(max(cyy, 0.0))
             stats[2, rc, c] = cxy
