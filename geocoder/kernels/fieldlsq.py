@@ -749,7 +749,7 @@ def field_lsq(
     radius: int = 25,
     radius_y: int = 3,
     iterations: int = 3,
-    tol: float = 0.05,
+    tol: float = 0.1,
     max_shift: float = 0.5,
     min_rho: float = 0.7,
     max_sigma: float = 0.1,

@@ -84,7 +84,7 @@ class DenseOptions:
     fill_step_tol: float = 0.05
     densify: str = "field"
     densify_iterations: int = 3
-    densify_tol: float = 0.05
+    densify_tol: float = 0.1
     densify_gap: int = 128
     densify_extend: int = 32
     neighbours: int = 4
