@@ -125,7 +125,8 @@ class DenseResult:
 def create_state(path: str, shape: tuple[int, int], tile: int) -> None:
     """Empty state store of two slots: ``fields`` (2, 12, H, W) float32 NaN and ``code`` (2, H, W) int8 -1."""
     g = zarr.open_group(path, mode="w", zarr_format=3)
-    g.create_array("fields", shape=(2, NFIELDS, *shape), chunks=(1, NFIELDS, tile, tile), dtype="float32", fill_value=np.nan)
+    # one chunk per field and tile: a stage that needs a few fields decodes only those
+    g.create_array("fields", shape=(2, NFIELDS, *shape), chunks=(1, 1, tile, tile), dtype="float32", fill_value=np.nan)
     g.create_array("code", shape=(2, *shape), chunks=(1, tile, tile), dtype="int8", fill_value=UNVISITED)
 
 
