@@ -136,6 +136,21 @@ def _gradients(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _add3(pre, q, j, v, x, x2):  # pragma: no cover - compiled
+    """Prefix sums of ``v``, ``x v`` and ``x^2 v`` in planes ``q .. q + 2``."""
+    pre[q, j + 1] = pre[q, j] + v
+    pre[q + 1, j + 1] = pre[q + 1, j] + x * v
+    pre[q + 2, j + 1] = pre[q + 2, j] + x2 * v
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _add2(pre, q, j, v, x):  # pragma: no cover - compiled
+    """Prefix sums of ``v`` and ``x v`` in planes ``q, q + 1``."""
+    pre[q, j + 1] = pre[q, j] + v
+    pre[q + 1, j + 1] = pre[q + 1, j] + x * v
+
+
 @numba.njit(nogil=True, cache=True)
 def _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, c0, c1, rx, nplanes, pre,
                 out):  # pragma: no cover - compiled
@@ -164,34 +179,15 @@ def _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, c0, c1, rx
             for k in range(nplanes):
                 pre[k, j + 1] = pre[k, j]
             continue
-        v = gx * gx
-        pre[_XX, j + 1] = pre[_XX, j] + v
-        pre[_XX + 1, j + 1] = pre[_XX + 1, j] + x * v
-        pre[_XX + 2, j + 1] = pre[_XX + 2, j] + x2 * v
-        v = gx * gy
-        pre[_XY, j + 1] = pre[_XY, j] + v
-        pre[_XY + 1, j + 1] = pre[_XY + 1, j] + x * v
-        pre[_XY + 2, j + 1] = pre[_XY + 2, j] + x2 * v
-        v = gy * gy
-        pre[_YY, j + 1] = pre[_YY, j] + v
-        pre[_YY + 1, j + 1] = pre[_YY + 1, j] + x * v
-        pre[_YY + 2, j + 1] = pre[_YY + 2, j] + x2 * v
-        v = gx * tv
-        pre[_XT, j + 1] = pre[_XT, j] + v
-        pre[_XT + 1, j + 1] = pre[_XT + 1, j] + x * v
-        v = gy * tv
-        pre[_YT, j + 1] = pre[_YT, j] + v
-        pre[_YT + 1, j + 1] = pre[_YT + 1, j] + x * v
-        pre[_X, j + 1] = pre[_X, j] + gx
-        pre[_X + 1, j + 1] = pre[_X + 1, j] + x * gx
-        pre[_Y, j + 1] = pre[_Y, j] + gy
-        pre[_Y + 1, j + 1] = pre[_Y + 1, j] + x * gy
-        v = gx * iv
-        pre[_XI, j + 1] = pre[_XI, j] + v
-        pre[_XI + 1, j + 1] = pre[_XI + 1, j] + x * v
-        v = gy * iv
-        pre[_YI, j + 1] = pre[_YI, j] + v
-        pre[_YI + 1, j + 1] = pre[_YI + 1, j] + x * v
+        _add3(pre, _XX, j, gx * gx, x, x2)
+        _add3(pre, _XY, j, gx * gy, x, x2)
+        _add3(pre, _YY, j, gy * gy, x, x2)
+        _add2(pre, _XT, j, gx * tv, x)
+        _add2(pre, _YT, j, gy * tv, x)
+        _add2(pre, _X, j, gx, x)
+        _add2(pre, _Y, j, gy, x)
+        _add2(pre, _XI, j, gx * iv, x)
+        _add2(pre, _YI, j, gy * iv, x)
         pre[_TT, j + 1] = pre[_TT, j] + tv * tv
         pre[_T, j + 1] = pre[_T, j] + tv
         pre[_TI, j + 1] = pre[_TI, j] + tv * iv
@@ -207,28 +203,13 @@ def _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, c0, c1, rx
             if not (cx - cx == 0.0 and cy - cy == 0.0):  # next to nodata: the slopes, never a NaN in a sum
                 cx = gx
                 cy = gy
-            v = cx * cx
-            pre[_CXX, j + 1] = pre[_CXX, j] + v
-            pre[_CXX + 1, j + 1] = pre[_CXX + 1, j] + x * v
-            pre[_CXX + 2, j + 1] = pre[_CXX + 2, j] + x2 * v
-            v = cx * cy
-            pre[_CXY, j + 1] = pre[_CXY, j] + v
-            pre[_CXY + 1, j + 1] = pre[_CXY + 1, j] + x * v
-            pre[_CXY + 2, j + 1] = pre[_CXY + 2, j] + x2 * v
-            v = cy * cy
-            pre[_CYY, j + 1] = pre[_CYY, j] + v
-            pre[_CYY + 1, j + 1] = pre[_CYY + 1, j] + x * v
-            pre[_CYY + 2, j + 1] = pre[_CYY + 2, j] + x2 * v
-            v = cx * rv
-            pre[_CXR, j + 1] = pre[_CXR, j] + v
-            pre[_CXR + 1, j + 1] = pre[_CXR + 1, j] + x * v
-            v = cy * rv
-            pre[_CYR, j + 1] = pre[_CYR, j] + v
-            pre[_CYR + 1, j + 1] = pre[_CYR + 1, j] + x * v
-            pre[_CX, j + 1] = pre[_CX, j] + cx
-            pre[_CX + 1, j + 1] = pre[_CX + 1, j] + x * cx
-            pre[_CY, j + 1] = pre[_CY, j] + cy
-            pre[_CY + 1, j + 1] = pre[_CY + 1, j] + x * cy
+            _add3(pre, _CXX, j, cx * cx, x, x2)
+            _add3(pre, _CXY, j, cx * cy, x, x2)
+            _add3(pre, _CYY, j, cy * cy, x, x2)
+            _add2(pre, _CXR, j, cx * rv, x)
+            _add2(pre, _CYR, j, cy * rv, x)
+            _add2(pre, _CX, j, cx, x)
+            _add2(pre, _CY, j, cy, x)
     for j in range(rx, n - rx):
         lo = j - rx
         hi = j + rx + 1

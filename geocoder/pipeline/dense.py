@@ -277,12 +277,11 @@ def grow_tiles(
         pending = {k: np.concatenate(v) for k, v in nxt.items()}
         if job is not None:
             job.save(f"dense-round-{rnd + 1}", (pending, slots, per_round))
-    if opts.col_step > 1 and opts.densify == "field":
-        slots = _densify_tiles(base_reader, dist_reader, grid, mapping, state, slots, band=band, dist_band=dist_band,
-                               opts=opts, job=job)
-    elif opts.col_step > 1:
-        slots = _fill_tiles(base_reader, dist_reader, grid, mapping, state, slots, band=band, dist_band=dist_band,
-                            opts=opts, job=job)
+    if opts.col_step > 1:
+        task, name, phase = ((_densify_task, "densify", "dense matching (every pixel)") if opts.densify == "field"
+                             else (_fill_task, "fill", "dense matching (fill)"))
+        slots = _tile_pass(task, name, phase, base_reader, dist_reader, grid, mapping, state, slots, band=band,
+                           dist_band=dist_band, opts=opts, job=job)
     return DenseResult(state, rounds, not pending, per_round, _slot_grid(grid, slots))
 
 
@@ -341,33 +340,6 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
     return new, True
 
 
-def _fill_tiles(base_reader: WindowReader, dist_reader: WindowReader, grid: TileGrid, mapping: PolyMap, state: str,
-                slots: dict[str, int], *, band: int, dist_band: int, opts: DenseOptions, job: Job | None) -> dict[str, int]:
-    """One fill pass over every tile after the last round; returns the new slots."""
-    if job is not None and job.done("dense-filled"):
-        return job.load("dense-filled")
-    shape = (grid.height, grid.width)
-    tiles = {t.key: t for t in grid}
-    sgrid = _slot_grid(grid, slots)
-    token = dask.base.tokenize(state, slots, "fill")
-    tasks = {
-        k: dask.delayed(_fill_task, pure=False)(
-            tiles[k], shape, base_reader, dist_reader, band, dist_band, state, sgrid, grid, mapping, opts,
-            dask_key_name=f"fill-{k}-{token}",
-        )
-        for k in sorted(tiles)
-    }
-    results = run_tiles(job, "dense-fill", tasks, phase="dense matching (fill)")
-    slots = dict(slots)
-    for k, (_, wrote) in results.items():
-        if wrote:
-            slots[k] = 1 - slots[k]
-    log.info("dense fill: %d new matches", int(sum(r[0] for r in results.values())))
-    if job is not None:
-        job.save("dense-filled", slots)
-    return slots
-
-
 def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: WindowReader, band: int, dist_band: int,
                   state: str, slots: np.ndarray, grid: TileGrid, mapping: PolyMap, opts: DenseOptions):
     """Match every pixel of one tile's core from the lattice (:mod:`geocoder.match.densify`).
@@ -419,31 +391,32 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     return int((code == 0).sum()), True
 
 
-def _densify_tiles(base_reader: WindowReader, dist_reader: WindowReader, grid: TileGrid, mapping: PolyMap, state: str,
-                   slots: dict[str, int], *, band: int, dist_band: int, opts: DenseOptions,
-                   job: Job | None) -> dict[str, int]:
-    """One densifying pass over every tile after the last round; returns the new slots."""
-    if job is not None and job.done("dense-densified"):
-        return job.load("dense-densified")
+def _tile_pass(task, name: str, phase: str, base_reader: WindowReader, dist_reader: WindowReader, grid: TileGrid,
+               mapping: PolyMap, state: str, slots: dict[str, int], *, band: int, dist_band: int, opts: DenseOptions,
+               job: Job | None) -> dict[str, int]:
+    """One pass of ``task`` (:func:`_densify_task` or :func:`_fill_task`) over every tile after
+    the last round; returns the new slots (a tile that wrote flips to its other slot)."""
+    if job is not None and job.done(f"dense-{name}-done"):
+        return job.load(f"dense-{name}-done")
     shape = (grid.height, grid.width)
     tiles = {t.key: t for t in grid}
     sgrid = _slot_grid(grid, slots)
-    token = dask.base.tokenize(state, slots, "densify", opts)
+    token = dask.base.tokenize(state, slots, name, opts)
     tasks = {
-        k: dask.delayed(_densify_task, pure=False)(
+        k: dask.delayed(task, pure=False)(
             tiles[k], shape, base_reader, dist_reader, band, dist_band, state, sgrid, grid, mapping, opts,
-            dask_key_name=f"densify-{k}-{token}",
+            dask_key_name=f"{name}-{k}-{token}",
         )
         for k in sorted(tiles)
     }
-    results = run_tiles(job, "dense-densify", tasks, phase="dense matching (every pixel)")
+    results = run_tiles(job, f"dense-{name}", tasks, phase=phase)
     slots = dict(slots)
     for k, (_, wrote) in results.items():
         if wrote:
             slots[k] = 1 - slots[k]
-    log.info("dense densify: %d matches", int(sum(r[0] for r in results.values())))
+    log.info("dense %s: %d matches", name, int(sum(r[0] for r in results.values())))
     if job is not None:
-        job.save("dense-densified", slots)
+        job.save(f"dense-{name}-done", slots)
     return slots
 
 
