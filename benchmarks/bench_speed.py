@@ -26,7 +26,7 @@ seconds per stage. ``--repeat N`` times each geocoder configuration N times in i
 and shows the fastest run.
 
 Run:  pip install -e ".[bench]"
-      python benchmarks/bench_speed.py [--size 2048] [--workers 1,2] [--skip-dense] [--skip-peers]
+      python benchmarks/bench_speed.py [--size 2048] [--workers 1,2] [--skip-dense] [--skip-peers] [--field]
                                        [--before-rev fff9652] [--repeat 3]
 """
 
@@ -112,21 +112,26 @@ def _child(args) -> None:
     from geocoder import register
     from geocoder.runtime import local_cluster
 
+    from geocoder.pipeline.dense import DenseOptions
+    from geocoder.pipeline.register import RegisterOptions
+
     work = Path(args.child)
-    dense = args.dense == "yes"
+    dense = args.dense in ("yes", "field")
+    # the opt-in lattice + every-pixel least squares (geocoder.match.densify)
+    options = RegisterOptions(matching=DenseOptions(col_step=16, halo=16, densify="field")) if args.dense == "field" else None
     t0 = time.perf_counter()
     with local_cluster(args.nworkers) as cluster, Client(cluster) as client:
         t_cluster = time.perf_counter() - t0
         files = client.run(lambda: __import__("geocoder").__file__)
         register(work.parent / "warm-base.tif", work.parent / "warm-dist.tif", tile=128, client=client,
-                 out=work / "warm.zarr", dense=dense)
+                 out=work / "warm.zarr", dense=dense, options=options)
         best = None
         for _ in range(args.repeat):  # the fastest of the repeats, with its own stage times
             shutil.rmtree(work / "out.zarr", ignore_errors=True)
             w0, c0 = client.run(_cpu), _cpu()
             t0 = time.perf_counter()
             ds = register(work.parent / "base.tif", work.parent / "dist.tif", tile=512, client=client,
-                          out=work / "out.zarr", dense=dense)
+                          out=work / "out.zarr", dense=dense, options=options)
             wall = time.perf_counter() - t0
             w1, c1 = client.run(_cpu), _cpu()
             cpu = (c1 - c0, sum(w1[k] - w0[k] for k in w0))
@@ -149,14 +154,14 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def run_geocoder(work: Path, label: str, *, dense: bool, nworkers: int, pythonpath: str | None, repeat: int = 1) -> dict:
+def run_geocoder(work: Path, label: str, *, dense: bool | str, nworkers: int, pythonpath: str | None, repeat: int = 1) -> dict:
     d = work / label.replace(" ", "_").replace("/", "_")
     d.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     if pythonpath:
         env["PYTHONPATH"] = pythonpath + os.pathsep + env.get("PYTHONPATH", "")
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(d), "--nworkers", str(nworkers),
-           "--dense", "yes" if dense else "no", "--repeat", str(repeat)]
+           "--dense", dense if isinstance(dense, str) else ("yes" if dense else "no"), "--repeat", str(repeat)]
     subprocess.run(cmd, env=env, check=True, cwd=work, stdout=subprocess.DEVNULL)
     info = json.loads((d / "timing.json").read_text())
     f = np.load(d / "fields.npz")
@@ -201,6 +206,8 @@ def main() -> None:
     ap.add_argument("--workers", default="1,2", help="local worker counts, comma separated")
     ap.add_argument("--skip-dense", action="store_true", help="no geocoder dense rows (the slow ones)")
     ap.add_argument("--skip-peers", action="store_true", help="no OpenCV / scikit-image rows")
+    ap.add_argument("--field", action="store_true",
+                    help="also the opt-in dense mode: lattice every 16th column + every pixel by window-sum least squares")
     ap.add_argument("--before-rev", default=None, help="also run the geocoder rows with this git revision's code")
     ap.add_argument("--repeat", type=int, default=1, help="timed geocoder runs per configuration (the fastest is shown)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -238,11 +245,15 @@ def main() -> None:
                     continue
                 peers[name] = (t, metrics(fx, fy, np.ones_like(overlap), pair, overlap))
         modes = ([("dense", True)] if not args.skip_dense else []) + [("--no-dense", False)]
+        if args.field:
+            modes.insert(0, ("dense lattice 16 + field", "field"))
         for tree, path in trees:
             for mode, dense in modes:
                 for n in workers:
                     label = f"geocoder {mode}, {n} worker{'s' if n > 1 else ''}, {tree}"
                     print(f"running {label} ...", file=sys.stderr, flush=True)
+                    if dense == "field" and path is not None:
+                        continue  # the before tree has no such mode
                     info = run_geocoder(work, label, dense=dense, nworkers=n, pythonpath=path, repeat=args.repeat)
                     if path is not None and not all(m.startswith(path) for m in [info["module"], *info["worker_modules"]]):
                         raise SystemExit(f"{label}: geocoder imported from {info['module']} / {info['worker_modules']}, not {path}")
