@@ -42,6 +42,7 @@ halo gives the same result for any tiling. Exit codes are those of
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -128,12 +129,6 @@ def _sample(image, px, py, region, out):  # pragma: no cover - compiled
             top = image[iy, ix] + fx * (image[iy, ix + 1] - image[iy, ix])
             bottom = image[iy + 1, ix] + fx * (image[iy + 1, ix + 1] - image[iy + 1, ix])
             out[r, c] = top + fy * (bottom - top)
-
-
-def _gradients(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Central differences (one-sided at the border), NaN spreading to the neighbours."""
-    gy, gx = np.gradient(d)
-    return gx, gy
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
@@ -642,6 +637,7 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
             stats[3, rc, c] = (sti - st * si / cnt) / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
 
 
+@dataclass(frozen=True)
 class FieldLsqResult:
     """Per-pixel result of :func:`field_lsq` on the window grid.
 
@@ -660,9 +656,16 @@ class FieldLsqResult:
         :class:`~geocoder.kernels.alsc.Exit` code, -1 where not tried.
     """
 
-    def __init__(self, x, y, affine, gain, offset, sigma_x, sigma_y, rho, step, code):
-        self.x, self.y, self.affine, self.gain, self.offset = x, y, affine, gain, offset
-        self.sigma_x, self.sigma_y, self.rho, self.step, self.code = sigma_x, sigma_y, rho, step, code
+    x: np.ndarray
+    y: np.ndarray
+    affine: np.ndarray
+    gain: np.ndarray
+    offset: np.ndarray
+    sigma_x: np.ndarray
+    sigma_y: np.ndarray
+    rho: np.ndarray
+    step: np.ndarray
+    code: np.ndarray
 
 
 @numba.njit(nogil=True, cache=True)
@@ -782,7 +785,7 @@ def field_lsq(
     d = np.asarray(dist, dtype=np.float64)
     dm, ds = _location_scale(d)
     d = (d - dm) / ds
-    cgx, cgy = _gradients(d)
+    cgy, cgx = np.gradient(d)  # the smooth gradients of the precision (NaN spreads to neighbours)
     px = np.array(x0, dtype=np.float64)
     py = np.array(y0, dtype=np.float64)
     weight = np.asarray(eligible, dtype=np.bool_) & np.isfinite(px) & np.isfinite(py)

@@ -28,10 +28,9 @@ __all__ = ["lattice_start", "densify_window"]
 @numba.njit(nogil=True, cache=True)
 def _lattice_start(x, y, a11, a21, matched, max_gap, max_extend, x0, y0, started):  # pragma: no cover - compiled
     h, w = matched.shape
+    nxt = np.empty(w, dtype=np.int64)  # next matched column at or after each column, per line
     for r in range(h):
         left = -1
-        # next matched lattice column at or after every column, found by a backward sweep
-        nxt = np.full(w, -1, dtype=np.int64)
         following = -1
         for c in range(w - 1, -1, -1):
             if matched[r, c]:

@@ -376,7 +376,7 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     region = (tile.row0 - br0, tile.row1 - br0, tile.col0 - bc0, tile.col1 - bc0)
     res = densify_window(base, dist, x0 - dc0, y0 - dr0, started, region, options=opts.alsc,
                          iterations=n, tol=opts.densify_tol)
-    out = np.full((NFIELDS, *res.code.shape), np.nan, dtype=np.float32)
+    out = np.empty((NFIELDS, *res.code.shape), dtype=np.float32)  # every field is set below
     out[0] = res.x + dc0 - np.arange(tile.col0, tile.col1)[None, :]
     out[1] = res.y + dr0 - np.arange(tile.row0, tile.row1)[:, None]
     out[2] = 1.0 + res.affine[0]
