@@ -36,6 +36,7 @@ from distributed import Client, Scheduler, Security, Worker
 from distributed.comm import connect
 
 import geocoder
+from geocoder.runtime import WORKER_ENV
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -317,6 +318,7 @@ def test_dockerfile():
     env = " ".join(rest for op, rest in ins if op == "ENV")
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         assert f"{var}=1" in env
+    assert f"MALLOC_MMAP_THRESHOLD_={WORKER_ENV['MALLOC_MMAP_THRESHOLD_']}" in env
     assert "DASK_CONFIG=/opt/geocoder/dask.yaml" in env
     users = [rest for op, rest in ins if op == "USER"]
     assert users and users[-1].split(":")[0] not in ("root", "0")

@@ -13,7 +13,7 @@ import yaml
 from distributed import Client, LocalCluster
 
 from geocoder import register
-from geocoder.runtime import WORKER_CONFIG, compute_as_completed, local_cluster
+from geocoder.runtime import WORKER_CONFIG, WORKER_ENV, compute_as_completed, local_cluster
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import make_pair
@@ -57,6 +57,8 @@ def _profiler(client: Client) -> set[tuple[bool, bool]]:
 def test_register_on_preloaded_workers(tmp_path, preloaded_cluster):
     c = preloaded_cluster
     assert all(v["NUMBA_NUM_THREADS"] == "1" for v in c.run(lambda: dict(os.environ)).values())
+    assert all(v.get("MALLOC_MMAP_THRESHOLD_") == WORKER_ENV["MALLOC_MMAP_THRESHOLD_"]
+               for v in c.run(lambda: dict(os.environ)).values()), "workers/dask.yaml sets glibc's mmap threshold before the worker starts"
     assert _profiler(c) == {(False, False)}, "workers/dask.yaml turns the profiler off"
     src = synthetic_ortho((352, 352), seed=3)
     pair = make_pair(src, shape=(256, 256), seed=3, margin=48)
@@ -73,6 +75,8 @@ def test_local_cluster_workers_keep_no_profile_history():
     with local_cluster(1) as cluster, Client(cluster) as c:
         assert c.submit(sum, range(10)).result() == 45
         assert _profiler(c) == {(False, False)}
+        # glibc reads it only at start: it must come through the nanny's pre-spawn environment
+        assert set(c.run(lambda: os.environ.get("MALLOC_MMAP_THRESHOLD_")).values()) == {WORKER_ENV["MALLOC_MMAP_THRESHOLD_"]}
         assert dask.config.get("distributed.worker.profile.enabled") is True, "the client's own configuration is untouched"
 
 
