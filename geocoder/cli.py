@@ -89,10 +89,18 @@ scheduler_option = click.option(
     default=None,
     help="Dask scheduler address or the cluster.json of 'geocoder cluster up' (default: $DASK_SCHEDULER_ADDRESS, else a local cluster).",
 )
-tile_option = click.option("--tile", default=512, show_default=True, type=click.IntRange(min=64),
-                           help="Tile (chunk) size in pixels (a multiple of 64 where tiles are matched).")
+tile_option = click.option("--tile", default=None, type=click.IntRange(min=64),
+                           help="Tile (chunk) size in pixels (a multiple of 64 where tiles are matched). Default: "
+                                "geocoder's option 'tile' (Dask config geocoder.tile, e.g. DASK_GEOCODER__TILE), else 512.")
 overwrite_option = click.option("--overwrite", is_flag=True,
                                 help="Replace an existing output if geocoder wrote it (anything else is never replaced).")
+
+
+def _tile(tile: int | None) -> int:
+    """``--tile`` if given, else the option ``tile`` (for library calls that do not resolve None themselves)."""
+    from .options import get_option
+
+    return tile if tile is not None else get_option("tile")
 
 
 @click.group(cls=_Main, context_settings={"help_option_names": ["-h", "--help"]})
@@ -170,10 +178,10 @@ def ingest(src, out, tile, nodata, overwrite, scheduler):
     from .scene import open_scene
 
     check_output(out, inputs=(src,), overwrite=overwrite, option="OUT")
-    open_scene(src, chunks=tile, nodata=nodata)  # a missing or unreadable input fails before a cluster starts
+    open_scene(src, nodata=nodata)  # a missing or unreadable input fails before a cluster starts
     with dask_client(scheduler=scheduler) as c:
-        scene = run(src, out, tile=tile, nodata=nodata, client=c, overwrite=overwrite)
-    click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {tile}")
+        scene = run(src, out, tile=tile, nodata=nodata, client=c, overwrite=overwrite)  # None: the option
+    click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {_tile(tile)}")
 
 
 @main.command()
@@ -256,7 +264,7 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, b
         if bad:
             raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
     t0 = time.perf_counter()
-    ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
+    ds = run(list(scenes), reference=reference, out=out, order=order, tile=_tile(tile), control_scenes=control,
              feather=feather, resampling=resampling, balance=balance, scheduler=scheduler, overwrite=overwrite, cog=cog, dense=dense)
     import json
 
@@ -333,7 +341,7 @@ def simulate(kind, ortho, dem, out, seed, band, sensor, tilt, rows, turbulence, 
     ds = run(
         kind, ortho, out=out, dem=dem, seed=seed, band=band, sensor=sensor, rows=rows, tilt_deg=tilt,
         turbulence_deg=turbulence, pixel=pixel, relief=relief, radiometry=Radiometry(noise=noise, gain=gain, offset=offset),
-        tile=tile, scheduler=scheduler, overwrite=overwrite,
+        tile=_tile(tile), scheduler=scheduler, overwrite=overwrite,
     )
     click.echo(
         f"wrote {out}: {kind} {ds.attrs['sensor_class']} image {ds.sizes['y']} x {ds.sizes['x']} px, "

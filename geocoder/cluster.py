@@ -27,19 +27,49 @@ CLUSTER_FILE = "cluster.json"
 
 
 def default_directory() -> str:
-    """``$GEOCODER_CLUSTER_DIR``, else ``~/.geocoder/cluster``."""
+    """The directory ``cluster up`` and ``cluster down`` use when given none.
+
+    Returns
+    -------
+    str
+        ``$GEOCODER_CLUSTER_DIR`` if set and not empty, else ``~/.geocoder/cluster``.
+    """
     return os.environ.get("GEOCODER_CLUSTER_DIR") or os.path.join(os.path.expanduser("~"), ".geocoder", "cluster")
 
 
 def preload_script() -> str | None:
-    """The worker preload of the source tree (``workers/geocoder_preload.py``), if present."""
+    """The worker preload of the source tree (``workers/geocoder_preload.py``), if present.
+
+    Returns
+    -------
+    str or None
+        Its absolute path, or None when the package is not run from a source tree that has it.
+    """
     p = Path(__file__).resolve().parents[1] / "workers" / "geocoder_preload.py"
     return str(p) if p.exists() else None
 
 
 @dataclass
 class ClusterInfo:
-    """What ``cluster up`` wrote to ``cluster.json``."""
+    """What ``cluster up`` wrote to ``cluster.json``.
+
+    Attributes
+    ----------
+    address : str
+        The scheduler's address (``tcp://...`` or ``tls://...``).
+    dashboard : str
+        The link to the scheduler's dashboard.
+    directory : str
+        The cluster's directory (``cluster.json``, logs, certificates).
+    scheduler_pid : int
+        Process id of the scheduler.
+    worker_pids : list of int
+        Process ids of the ``dask worker`` commands (each a worker's nanny), one per worker.
+    tls : str or None
+        Directory of the TLS certificates, or None for a cluster without TLS.
+    started : float
+        When the cluster was started (seconds since the epoch).
+    """
 
     address: str
     dashboard: str
@@ -51,9 +81,17 @@ class ClusterInfo:
 
     @property
     def file(self) -> str:
+        """The path of ``cluster.json`` in :attr:`directory`."""
         return os.path.join(self.directory, CLUSTER_FILE)
 
     def lines(self) -> list[str]:
+        """What ``geocoder cluster up`` prints: the address, the dashboard, how to use and stop it.
+
+        Returns
+        -------
+        list of str
+            One line each, without newlines.
+        """
         return [
             f"scheduler {self.address} with {len(self.worker_pids)} worker(s){' (TLS)' if self.tls else ''}",
             f"dashboard {self.dashboard}"
@@ -80,7 +118,24 @@ def _alive(pid: int) -> bool:
 
 
 def read_info(directory: str | None = None) -> ClusterInfo | None:
-    """The running cluster's description in ``directory``, or None."""
+    """The description of the cluster started from ``directory`` (its ``cluster.json``).
+
+    Parameters
+    ----------
+    directory : str, optional
+        The cluster's directory (default :func:`default_directory`).
+
+    Returns
+    -------
+    ClusterInfo or None
+        As ``cluster up`` wrote it, or None when there is no ``cluster.json``. Whether its
+        processes still run is not checked.
+
+    Raises
+    ------
+    GeocoderError
+        If ``cluster.json`` exists but is not a cluster file.
+    """
     path = os.path.join(directory or default_directory(), CLUSTER_FILE)
     try:
         with open(path) as f:
@@ -109,6 +164,17 @@ def up(workers: int = 2, *, directory: str | None = None, tls: bool = False, mem
         Where the scheduler listens (0 = a free port).
     timeout : float
         Seconds to wait for the scheduler and all workers.
+
+    Returns
+    -------
+    ClusterInfo
+        The running cluster, as written to ``cluster.json`` in ``directory``.
+
+    Raises
+    ------
+    GeocoderError
+        If a cluster started from ``directory`` is still running, or a process exited or
+        did not start within ``timeout`` (everything started is stopped again).
     """
     directory = os.path.abspath(directory or default_directory())
     old = read_info(directory)
@@ -224,13 +290,30 @@ def _terminate(pid: int, grace: float = 10.0) -> bool:
 
 @dataclass
 class Stopped:
-    """What :func:`down` found running and stopped."""
+    """What :func:`down` found running and stopped.
+
+    Attributes
+    ----------
+    info : ClusterInfo
+        The cluster as ``cluster.json`` described it.
+    scheduler_running : bool
+        Whether the scheduler was still running (and was stopped).
+    workers_running : int
+        How many worker processes were still running (and were stopped).
+    """
 
     info: ClusterInfo
     scheduler_running: bool
     workers_running: int
 
     def line(self) -> str:
+        """What ``geocoder cluster down`` prints.
+
+        Returns
+        -------
+        str
+            One line: what was stopped and what had already stopped.
+        """
         dead = len(self.info.worker_pids) - self.workers_running
         parts = [f"stopped {self.info.address}" if self.scheduler_running else f"the scheduler {self.info.address} had already stopped",
                  f"{self.workers_running} worker process(es) stopped"]
@@ -240,7 +323,25 @@ class Stopped:
 
 
 def down(directory: str | None = None) -> Stopped | None:
-    """Stop the cluster described in ``directory``; what was still running (None: no cluster file)."""
+    """Stop the cluster described in ``directory`` and remove its ``cluster.json``.
+
+    Each process group gets SIGTERM, then SIGKILL if it is still running 10 s later.
+
+    Parameters
+    ----------
+    directory : str, optional
+        The cluster's directory (default :func:`default_directory`).
+
+    Returns
+    -------
+    Stopped or None
+        What was still running and was stopped; None when there is no ``cluster.json``.
+
+    Raises
+    ------
+    GeocoderError
+        If ``cluster.json`` exists but is not a cluster file.
+    """
     info = read_info(directory)
     if info is None:
         return None

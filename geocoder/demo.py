@@ -14,12 +14,14 @@ from .simulate.texture import synthetic_ortho
 from .simulate.warp import make_pair
 
 
-def run_demo(*, size: int = 1024, seed: int = 0, directory: str = "geocoder-demo", tile: int = 512, scheduler: str | None = None, client=None) -> list[str]:
+def run_demo(*, size: int = 1024, seed: int = 0, directory: str = "geocoder-demo", tile: int | None = None,
+             scheduler: str | None = None, client=None) -> list[str]:
     """Make ``base.tif`` (georeferenced) and ``distorted.tif`` (raw, warped by an affine +
     quadratic field of up to 15 px, new noise, gain and offset), register them, and
     report the error of the displacement field against the known truth.
 
     ``directory`` must be new, empty or an earlier demo's (nothing else is written into).
+    ``tile`` goes to :func:`geocoder.register` (None: the option ``tile``, 512 unless set).
     Returns the lines to print.
     """
     directory = claim_directory(directory, product="demo")

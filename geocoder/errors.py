@@ -19,13 +19,38 @@ class GeocoderError(Exception):
 
     The message is a single line that names the file (when there is one) and
     the problem, so the CLI can print it as it is.
+
+    Attributes
+    ----------
+    exit_code : int
+        The command line's exit code for this error: 2 (:data:`EXIT_INPUT`, bad input or
+        usage) unless a subclass says otherwise.
     """
 
     exit_code = EXIT_INPUT
 
 
 class InputError(GeocoderError):
-    """An input file is missing, unreadable or unusable (no texture, no overlap)."""
+    """An input file is missing, unreadable or unusable (no texture, no overlap).
+
+    The message is ``"<path>: <problem>"``, or the problem alone without a path.
+
+    Parameters
+    ----------
+    path : object
+        The file (or URL) at fault, or None when there is none to name.
+    problem : str
+        What is wrong with it, one line.
+
+    Attributes
+    ----------
+    path : str or None
+        ``str(path)``, or None.
+    problem : str
+        As given.
+    exit_code : int
+        2 (:data:`EXIT_INPUT`).
+    """
 
     def __init__(self, path: object, problem: str) -> None:
         self.path = str(path) if path is not None else None
@@ -38,7 +63,13 @@ class OutputError(InputError):
 
 
 class MatchingError(GeocoderError):
-    """The images could not be matched (too few tie points, no overlap)."""
+    """The images could not be matched (too few tie points, no overlap).
+
+    Attributes
+    ----------
+    exit_code : int
+        2 (:data:`EXIT_INPUT`): the same inputs fail the same way again.
+    """
 
 
 class EnvironmentFailure(GeocoderError):

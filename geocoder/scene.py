@@ -166,26 +166,45 @@ def ingest(
     The store holds one array ``image`` (band, y, x), float32, NaN = nodata, chunked
     ``(bands, tile, tile)``. It is written under a temporary name and committed when
     complete (:func:`geocoder.storage.commit_store`), so a killed job never leaves a store
-    that looks finished. ``out`` is a local path or any fsspec URL.
+    that looks finished.
 
-    ``tile`` defaults to :func:`geocoder.get_option` ``("tile")`` (512 unless set).
+    Parameters
+    ----------
+    src : str, PathLike or xarray.DataArray
+        A file :func:`open_scene` reads (GeoTIFF/COG/Zarr, path or URL), or a scene
+        DataArray ``(band, y, x)`` written as it is.
+    out : str or PathLike
+        The store to write: a local path or any fsspec URL.
+    tile : int, optional
+        Chunk size in y and x. Default :func:`geocoder.get_option` ``("tile")`` (512 unless
+        set by :func:`geocoder.set_options` or Dask config ``geocoder.tile``).
+    nodata : float, optional
+        Extra nodata value of ``src`` (see :func:`open_scene`); not used for a DataArray.
+    bands : list of int, optional
+        1-based bands of ``src`` to keep, default all; not used for a DataArray.
+    client : distributed.Client, optional
+        Where to compute the write; default Dask's current scheduler.
+    atomic : bool
+        True: write under a temporary name and commit when complete, after checking ``out``
+        (see ``overwrite``). False writes in place without those checks, for callers that
+        record completion themselves (a job's manifest): on object stores it saves copying
+        the store once.
+    overwrite : bool
+        Replace an existing ``out`` if geocoder wrote it; without it an existing ``out``
+        (other than an empty directory) is refused. Anything geocoder did not write is never
+        replaced, and an ``out`` equal to, inside or containing ``src``, or equal to or
+        containing the working directory, is always refused
+        (:func:`geocoder.outputs.check_output`). Used only when ``atomic``.
 
-    ``atomic=False`` writes in place, for callers that record completion themselves (a
-    job's manifest): on object stores it saves copying the store once.
-
-    An existing ``out`` is refused unless ``overwrite``, and even then only a store geocoder
-    wrote is replaced (:func:`geocoder.outputs.check_output`); so is an ``out`` equal to,
-    inside or containing ``src`` or the working directory.
+    Returns
+    -------
+    xarray.DataArray
+        The scene re-opened from the new store, chunked by ``tile``.
 
     Raises
     ------
     InputError
         If ``src`` cannot be read (missing, truncated, damaged) or ``out`` is refused.
-
-    Returns
-    -------
-    xarray.DataArray
-        The scene re-opened from the new store.
     """
     if atomic:
         out = check_output(out, inputs=(src,), overwrite=overwrite, option="OUT")

@@ -8,12 +8,20 @@ from enum import IntEnum
 class Status(IntEnum):
     """What the displacement of a base pixel rests on.
 
-    OUTSIDE     0  no distorted data at ``p + d(p)`` (outside the overlap or nodata)
-    MATCHED     1  dense least-squares match
-    FILLED      2  filled by interpolation along the scan line
-    BLUNDER     3  match rejected as a blunder by the post-filter
-    NO_TEXTURE  4  not matched: too little texture
-    MODEL       5  displacement from the global polynomial only
+    Attributes
+    ----------
+    OUTSIDE : int
+        0: no distorted data at ``p + d(p)`` (outside the overlap or nodata).
+    MATCHED : int
+        1: dense least-squares match.
+    FILLED : int
+        2: filled by interpolation along the scan line.
+    BLUNDER : int
+        3: match rejected as a blunder by the post-filter.
+    NO_TEXTURE : int
+        4: not matched: too little texture.
+    MODEL : int
+        5: displacement from the global polynomial only.
     """
 
     OUTSIDE = 0

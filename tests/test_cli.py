@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pytest
 from affine import Affine
+from pairs import write_synthetic_pair
 
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
@@ -15,8 +16,9 @@ from geocoder.simulate.texture import synthetic_ortho
 pytestmark = pytest.mark.cluster
 
 
-def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "geocoder.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600)
+def run(*args, cwd=None, env=None):
+    return subprocess.run([sys.executable, "-m", "geocoder.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd,
+                          env=env, timeout=600)
 
 
 def leftovers(directory):
@@ -104,3 +106,29 @@ def test_simulate_synthetic_ortho(tmp_path, client):
     ds = xr.open_zarr(out, consolidated=False)
     assert ds.attrs["sensor_class"] == "LineScanner" and float(ds.image.isnull().mean()) < 0.05
     assert leftovers(tmp_path) == []
+
+
+def test_tile_from_options_unless_given(tmp_path, client):
+    """Issue 16 item 4: without --tile the library's options decide (here Dask config from the
+    environment, ``DASK_GEOCODER__TILE``); a --tile on the command line wins over them."""
+    write_synthetic_pair(tmp_path, 384, seed=5, max_displacement=4)
+    base, dist = tmp_path / "base.tif", tmp_path / "dist.tif"
+    env = dict(os.environ, DASK_GEOCODER__TILE="128")
+    scheduler = ("--scheduler", client.scheduler.address)
+    import xarray as xr
+
+    def tile_of(store):
+        return xr.open_zarr(store, consolidated=False).dx.data.chunksize
+
+    r = run("register", base, dist, "--out", tmp_path / "option.zarr", "--no-dense", *scheduler, env=env)
+    assert r.returncode == 0, r.stderr
+    assert tile_of(tmp_path / "option.zarr") == (128, 128)  # not the 384 of one 512 tile
+    r = run("register", base, dist, "--out", tmp_path / "flag.zarr", "--no-dense", "--tile", 256, *scheduler, env=env)
+    assert r.returncode == 0, r.stderr
+    assert tile_of(tmp_path / "flag.zarr") == (256, 256)
+    r = run("ingest", base, tmp_path / "base.zarr", *scheduler, env=env)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().endswith("384 x 384 px, tile 128")
+    assert xr.open_zarr(tmp_path / "base.zarr", consolidated=False).image.data.chunksize == (1, 128, 128)
+    r = run("ingest", base, tmp_path / "bad.zarr", *scheduler, env=dict(os.environ, DASK_GEOCODER__TILE="100"))
+    assert r.returncode == 2 and "geocoder.tile must be a positive multiple of 64" in r.stderr.strip().splitlines()[-1]

@@ -73,15 +73,49 @@ class SensorModel(Protocol):
     n_params: int
 
     def project(self, params: np.ndarray, ground: np.ndarray) -> np.ndarray:
-        """Image coordinates ``(x, y)`` of ECEF ground points, shape ``(m, 2)``."""
+        """Image coordinates of ECEF ground points.
+
+        Parameters
+        ----------
+        params : ndarray, shape (n_params,)
+            Parameter vector.
+        ground : ndarray, shape (m, 3)
+            ECEF coordinates (m).
+
+        Returns
+        -------
+        ndarray, shape (m, 2)
+            ``(x, y)``.
+        """
         ...
 
     def jacobians(self, params: np.ndarray, ground: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``d image / d params`` ``(m, 2, n_params)`` and ``d image / d ground`` ``(m, 2, 3)``."""
+        """Derivatives of :meth:`project` with respect to the parameters and the ground points.
+
+        Parameters
+        ----------
+        params : ndarray, shape (n_params,)
+            Parameter vector.
+        ground : ndarray, shape (m, 3)
+            ECEF coordinates (m).
+
+        Returns
+        -------
+        J_params : ndarray, shape (m, 2, n_params)
+            ``d image / d params``.
+        J_ground : ndarray, shape (m, 2, 3)
+            ``d image / d ground``.
+        """
         ...
 
     def initial_params(self) -> np.ndarray:
-        """A sensible starting parameter vector, shape ``(n_params,)``."""
+        """A sensible starting parameter vector.
+
+        Returns
+        -------
+        ndarray, shape (n_params,)
+            The start values of the adjustment.
+        """
         ...
 
 
@@ -211,12 +245,34 @@ class Polynomial2D:
         )
 
     def plane(self, ground: ArrayLike) -> np.ndarray:
-        """Normalised tangent-plane coordinates ``(u, v)`` of ECEF points, shape ``(m, 2)``."""
+        """Normalised tangent-plane coordinates of ECEF points.
+
+        Parameters
+        ----------
+        ground : array_like, shape (m, 3)
+            ECEF coordinates (m).
+
+        Returns
+        -------
+        ndarray, shape (m, 2)
+            ``(u, v)``: east and north of the origin on its tangent plane, divided by ``scale``.
+        """
         g = _as_ground(ground)
         return (g - self.origin) @ self._enu[:2].T / self.scale
 
     def monomials(self, uv: np.ndarray) -> np.ndarray:
-        """Monomial values ``u^i v^j``, shape ``(m, K)``."""
+        """Monomial values ``u^i v^j`` for the exponents ``(i, j)`` of the model.
+
+        Parameters
+        ----------
+        uv : ndarray, shape (m, 2)
+            Plane coordinates from :meth:`plane`.
+
+        Returns
+        -------
+        ndarray, shape (m, K)
+            One column per row of ``exponents`` (``K = n_monomials``).
+        """
         u, v = uv[:, 0:1], uv[:, 1:2]
         i, j = self.exponents[:, 0], self.exponents[:, 1]
         return u**i * v**j
@@ -278,7 +334,13 @@ class Polynomial2D:
         return Jp, Jg
 
     def initial_params(self) -> np.ndarray:
-        """Zeros (use :meth:`fit` for a real start)."""
+        """Zeros (use :meth:`fit` for a real start).
+
+        Returns
+        -------
+        ndarray, shape (n_params,)
+            All zero.
+        """
         return np.zeros(self.n_params)
 
     def fit(self, ground: ArrayLike, xy: ArrayLike, weights: ArrayLike | None = None) -> np.ndarray:
@@ -489,13 +551,36 @@ class LineScannerModel:
 
     # ------------------------------------------------------------ model
     def full_parameters(self, params: ArrayLike) -> np.ndarray:
-        """The 32-vector: the template's values with the free entries replaced by ``params``."""
+        """The 32-vector: the template's values with the free entries replaced by ``params``.
+
+        Parameters
+        ----------
+        params : array_like, shape (n_params,)
+            Free parameters.
+
+        Returns
+        -------
+        ndarray, shape (32,)
+            In the order of :meth:`LineScanner.parameters`.
+        """
         p = self._p0.copy()
         p[self.free] = _as_params(params, self.n_params)
         return p
 
     def scanner(self, params: ArrayLike) -> LineScanner:
-        """The :class:`LineScanner` for a (free) parameter vector."""
+        """The :class:`LineScanner` for a (free) parameter vector.
+
+        Parameters
+        ----------
+        params : array_like, shape (n_params,)
+            Free parameters.
+
+        Returns
+        -------
+        LineScanner
+            The template's internal geometry with these parameters (a negative eccentricity
+            mapped to the identical orbit with ``e >= 0``).
+        """
         p = self.full_parameters(params)
         if p[1] < 0:  # identical orbit with e >= 0
             p[1] = -p[1]
@@ -507,7 +592,13 @@ class LineScannerModel:
         )
 
     def initial_params(self) -> np.ndarray:
-        """The template's values of the free parameters."""
+        """The template's values of the free parameters.
+
+        Returns
+        -------
+        ndarray, shape (n_params,)
+            A copy.
+        """
         return self._p0[self.free].copy()
 
     @staticmethod
@@ -749,14 +840,32 @@ class RPC:
         return row, col
 
     def project_ecef(self, ground: ArrayLike) -> np.ndarray:
-        """Image ``(x, y)`` of ECEF points (m), shape ``(m, 2)``."""
+        """Image coordinates of ECEF points: :meth:`project` after the conversion to geodetic.
+
+        Parameters
+        ----------
+        ground : array_like, shape (m, 3)
+            ECEF coordinates (m).
+
+        Returns
+        -------
+        ndarray, shape (m, 2)
+            ``(x, y)`` = ``(col, row)``.
+        """
         g = _as_ground(ground)
         lat, lon, h = ecef_to_geodetic(g[:, 0], g[:, 1], g[:, 2])
         row, col = self.project(np.rad2deg(lat), np.rad2deg(lon), h)
         return np.stack([col, row], axis=-1)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain fields: floats, lists of 20 floats, ``err_bias``/``err_rand`` (float or None)."""
+        """The fields as plain Python values (JSON-serialisable).
+
+        Returns
+        -------
+        dict
+            Field name -> value: floats, lists of 20 floats, ``err_bias``/``err_rand``
+            (float or None).
+        """
         out: dict[str, Any] = {}
         for f in fields(self):
             v = getattr(self, f.name)
@@ -785,7 +894,13 @@ class RPC:
         return cls(**kw, err_bias=getattr(rpcs, "err_bias", None), err_rand=getattr(rpcs, "err_rand", None))
 
     def to_rasterio(self) -> Any:
-        """A ``rasterio.rpc.RPC`` (usable as ``rpcs=`` when writing a dataset)."""
+        """The coefficients as rasterio's RPC object.
+
+        Returns
+        -------
+        rasterio.rpc.RPC
+            Usable as ``rpcs=`` when writing a dataset.
+        """
         from rasterio.rpc import RPC as _RioRPC
 
         return _RioRPC(**self.to_dict())
@@ -937,7 +1052,13 @@ class RPCModel:
         return f"RPCModel(rpc=<RPC line_off={self.rpc.line_off}, samp_off={self.rpc.samp_off}>)"
 
     def initial_params(self) -> np.ndarray:
-        """Zeros."""
+        """Zeros: the RPC as delivered, no bias.
+
+        Returns
+        -------
+        ndarray, shape (6,)
+            All zero.
+        """
         return np.zeros(6)
 
     @staticmethod

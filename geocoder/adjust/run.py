@@ -41,16 +41,57 @@ def residual_svg(path: str, xy: np.ndarray, res: np.ndarray, active: np.ndarray,
 def adjust_files(frames_path: str, points_path: str, obs_path: str, out: str, *, robust: bool = False,
                  snooping: bool = False, tie_height_sigma: float | None = 15.0, client=None, scheduler: str | None = None,
                  overwrite: bool = False) -> dict:
-    """Run a block adjustment from files; write ``frames.json``, ``points.csv``,
-    ``residuals.csv``, ``report.md`` and ``residuals_frame<k>.svg`` into ``out``.
+    """Run a block adjustment from files and write its results into the directory ``out``.
 
-    Points with role ``check`` are withheld and measured through the adjusted models. The
+    ``out`` receives ``frames.json``, ``points.csv``, ``residuals.csv``, ``report.md`` and
+    ``residuals_frame<k>.svg``. Points with role ``check`` are withheld and measured through the adjusted models. The
     adjustment is gathered on one node: this process, or with ``client`` / ``scheduler`` one
     task on a worker of that cluster (the files must be on a filesystem the worker sees).
 
-    ``out`` is written whole: into a hidden sibling, renamed into place when complete. An
-    existing ``out`` is refused unless ``overwrite`` and geocoder wrote it (an empty
-    directory is fine); so is one equal to or containing an input or the working directory.
+    ``out`` is written whole: into a hidden sibling, renamed into place when complete.
+
+    Parameters
+    ----------
+    frames_path : str
+        Frames JSON: the sensor model and start parameters of every frame.
+    points_path : str
+        Ground points CSV (``id,role,X,Y,Z,sigma_X,sigma_Y,sigma_Z``); role ``control``,
+        ``tie`` or ``check``.
+    obs_path : str
+        Image observations CSV (``frame,point,x,y,w_xx,w_xy,w_yy``).
+    out : str
+        Output directory.
+    robust : bool
+        Robust re-weighting (eq 20b, then eq 22b) of the image observations.
+    snooping : bool
+        Data snooping with redundancy numbers after the (robust) adjustment.
+    tie_height_sigma : float or None
+        Prior standard deviation (m) that holds the ellipsoidal height of every tie point to
+        the value in ``points_path`` (its position is otherwise free). None: tie points are
+        weighted by their ``sigma_*`` columns like the other points.
+    client : distributed.Client, optional
+        Run the adjustment as one task on this cluster.
+    scheduler : str, optional
+        Address of a Dask scheduler (or a ``cluster.json``) to run the task on, when no
+        ``client`` is given.
+    overwrite : bool
+        Replace an existing ``out`` if geocoder wrote it (an empty directory is always
+        fine); anything else is refused, as is an ``out`` equal to or containing an input or
+        the working directory.
+
+    Returns
+    -------
+    dict
+        The summary the CLI prints: ``frames``, ``points``, ``check_points``,
+        ``observations``, ``rejected``, ``sigma0``, ``iterations``, ``converged``,
+        ``solver``, ``rms_residual_px`` (per frame), ``check_rms_m`` (per frame) and
+        ``check_rms_total_m`` (None without check points).
+
+    Raises
+    ------
+    InputError
+        If an input cannot be read, the observations refer to frames or points the other
+        files do not have, or ``out`` is refused.
     """
     if client is not None or scheduler:
         from ..runtime import dask_client

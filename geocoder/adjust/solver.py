@@ -66,18 +66,52 @@ _BANDED_MAX_ENTRIES = (
 
 
 class SensorModel(Protocol):
-    """What the solver needs from a sensor model (one instance per frame, or shared)."""
+    """What the solver needs from a sensor model (one instance per frame, or shared).
+
+    Attributes
+    ----------
+    n_params : int
+        Number of parameters of one frame.
+    """
 
     n_params: int
 
     def project(self, params: np.ndarray, ground: np.ndarray) -> np.ndarray:
-        """Image coordinates ``(m, 2)`` as ``(x=col, y=row)`` of ground points ``(m, 3)``."""
+        """Image coordinates of ground points.
+
+        Parameters
+        ----------
+        params : numpy.ndarray
+            The frame's parameters, shape ``(n_params,)``.
+        ground : numpy.ndarray
+            Ground points, shape ``(m, 3)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            Image coordinates ``(m, 2)`` as ``(x=col, y=row)``.
+        """
         ...
 
     def jacobians(
         self, params: np.ndarray, ground: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Derivatives of the projection: w.r.t. params ``(m, 2, n_params)``, ground ``(m, 2, 3)``."""
+        """Derivatives of :meth:`project` with respect to the parameters and the ground points.
+
+        Parameters
+        ----------
+        params : numpy.ndarray
+            The frame's parameters, shape ``(n_params,)``.
+        ground : numpy.ndarray
+            Ground points, shape ``(m, 3)``.
+
+        Returns
+        -------
+        d_params : numpy.ndarray
+            Shape ``(m, 2, n_params)``.
+        d_ground : numpy.ndarray
+            Shape ``(m, 2, 3)``.
+        """
         ...
 
 
