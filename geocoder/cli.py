@@ -96,13 +96,6 @@ overwrite_option = click.option("--overwrite", is_flag=True,
                                 help="Replace an existing output if geocoder wrote it (anything else is never replaced).")
 
 
-def _tile(tile: int | None) -> int:
-    """``--tile`` if given, else the option ``tile`` (for library calls that do not resolve None themselves)."""
-    from .options import get_option
-
-    return tile if tile is not None else get_option("tile")
-
-
 @click.group(cls=_Main, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("-v", "--verbose", count=True, help="Log lines of the stages (-vv: debugging output, Dask's logs too).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
@@ -181,7 +174,7 @@ def ingest(src, out, tile, nodata, overwrite, scheduler):
     open_scene(src, nodata=nodata)  # a missing or unreadable input fails before a cluster starts
     with dask_client(scheduler=scheduler) as c:
         scene = run(src, out, tile=tile, nodata=nodata, client=c, overwrite=overwrite)  # None: the option
-    click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {_tile(tile)}")
+    click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {scene.data.chunksize[-1]}")
 
 
 @main.command()
@@ -264,7 +257,7 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, b
         if bad:
             raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
     t0 = time.perf_counter()
-    ds = run(list(scenes), reference=reference, out=out, order=order, tile=_tile(tile), control_scenes=control,
+    ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
              feather=feather, resampling=resampling, balance=balance, scheduler=scheduler, overwrite=overwrite, cog=cog, dense=dense)
     import json
 
@@ -341,7 +334,7 @@ def simulate(kind, ortho, dem, out, seed, band, sensor, tilt, rows, turbulence, 
     ds = run(
         kind, ortho, out=out, dem=dem, seed=seed, band=band, sensor=sensor, rows=rows, tilt_deg=tilt,
         turbulence_deg=turbulence, pixel=pixel, relief=relief, radiometry=Radiometry(noise=noise, gain=gain, offset=offset),
-        tile=_tile(tile), scheduler=scheduler, overwrite=overwrite,
+        tile=tile, scheduler=scheduler, overwrite=overwrite,
     )
     click.echo(
         f"wrote {out}: {kind} {ds.attrs['sensor_class']} image {ds.sizes['y']} x {ds.sizes['x']} px, "

@@ -53,22 +53,9 @@ NOT_CALLABLE = {
 #: Fewer checked objects than this means the walk broke (76 when written; 9 of them xfail).
 FLOOR = 75
 
-#: Objects in files another engineer is editing (issue 16 split): expected to fail until they
-#: are fixed there; strict, so each flips to a failure (remove it from here) once it passes.
-XFAIL = {
-    "geocoder.register": "pipeline/register.py: Parameters lacks 'scheduler'",
-    "geocoder.RegisterOptions": "pipeline/register.py: no Parameters or Attributes section",
-    "geocoder.RegisterOptions.validate": "pipeline/register.py: no docstring (and no '-> None' annotation, "
-                                         "so it needs Returns unless annotated)",
-    "geocoder.mosaic.mosaic": "mosaic/run.py: Parameters lacks 'show_progress'",
-    "geocoder.mosaic.MosaicSummary": "mosaic/run.py: no Parameters or Attributes section",
-    "geocoder.mosaic.MosaicSummary.lines": "mosaic/run.py: no docstring",
-    "geocoder.mosaic.load_models": "mosaic/run.py: no Parameters ('ds') and no Returns section",
-    "geocoder.mosaic.scene_positions": "mosaic/run.py: two-line summary, no Parameters ('ds', 'store'), "
-                                       "no Returns section",
-    "geocoder.pipeline.simulate.simulate": "pipeline/simulate.py: Parameters lacks 'relief', 'tile', "
-                                           "'client', 'scheduler'",
-}
+#: Objects known to fail the check, each with why (empty: every one passes); strict, so an
+#: entry that starts passing fails until it is removed from here.
+XFAIL: dict[str, str] = {}
 
 
 # ----------------------------------------------------------------------------- the walk

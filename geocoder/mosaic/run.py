@@ -36,6 +36,8 @@ from ..conventions import georeference
 from ..errors import GeocoderError, InputError
 from ..geometry import pixel_to_world, world_to_pixel
 from ..kernels.polynomial import fit_polymap
+from ..multiscales import write_overviews
+from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..pipeline.detect import interest_points
 from ..pipeline.job import Job, JobRun, fingerprint
@@ -53,7 +55,33 @@ log = logging.getLogger("geocoder")
 
 @dataclass
 class MosaicSummary:
-    """What the CLI prints and the store keeps (``attrs["summary"]``)."""
+    """What the CLI prints and the store keeps (``attrs["summary"]``).
+
+    Attributes
+    ----------
+    scenes : list of str
+        The scenes, in the order of the block.
+    control_points : list of int
+        Control points found per scene.
+    pairs : list of dict
+        Overlapping pairs: scene indices ``i``, ``j`` and their tie points ``ties``.
+    left_out : dict
+        Scene index -> why it was left out of the block.
+    sigma0 : float
+        A-posteriori sigma of unit weight of the block adjustment.
+    iterations : int
+        Iterations of the block adjustment.
+    rms_px : list of float
+        RMS image residual per scene, in pixels.
+    rays : dict
+        Number of ground points by the number of scenes that see them.
+    seam_step : list of float
+        RMS grey-value step at the tie points before and after the radiometric balance.
+    shape : tuple of int
+        Rows and columns of the mosaic.
+    seconds : dict
+        Wall time per stage.
+    """
 
     scenes: list[str]
     control_points: list[int] = field(default_factory=list)
@@ -68,6 +96,12 @@ class MosaicSummary:
     seconds: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
+        """The summary as the lines the CLI prints.
+
+        Returns
+        -------
+        list of str
+        """
         kept = len(self.scenes) - len(self.left_out)
         return [
             f"scenes: {len(self.scenes)} ({kept} in the block); control points per scene {self.control_points}",
@@ -174,7 +208,7 @@ def mosaic(
     reference,
     out: str | os.PathLike | None = None,
     order: int = 2,
-    tile: int = 512,
+    tile: int | None = None,
     control_scenes: list[int] | None = None,
     feather: float = 8.0,
     resampling: str = "bilinear",
@@ -199,8 +233,9 @@ def mosaic(
         Without it the mosaic is computed into memory.
     order : int
         Polynomial order of every scene's model (1-3).
-    tile : int
-        Tile of all tile-parallel stages and of the output (a multiple of 64).
+    tile : int, optional
+        Tile of all tile-parallel stages and of the output (a multiple of 64); default
+        :func:`geocoder.get_option` ``("tile")`` (512 unless set).
     control_scenes : list of int, optional
         Scenes whose reference matches serve as control points (default all); the others
         are placed by tie points only (sparse control).
@@ -225,6 +260,8 @@ def mosaic(
         instead of from the model (the line-to-line turbulence of airborne scanners, which
         no polynomial follows). The fields are kept in the store (group ``dense/<n>``);
         scenes without control keep their model.
+    show_progress : Progress or bool, optional
+        Progress receiver, as in :func:`geocoder.register`.
 
     Returns
     -------
@@ -236,6 +273,8 @@ def mosaic(
     """
     if not scenes:
         raise InputError("scenes", "no scenes given")
+    if tile is None:
+        tile = get_option("tile")
     if not 1 <= order <= 3:
         raise ValueError(f"order must be 1, 2 or 3, got {order}")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
@@ -382,6 +421,7 @@ def mosaic(
         if out is None:
             result_ds = xr.open_zarr(store, decode_coords="all", consolidated=False).load()
             return result_ds
+        write_overviews(store, client=c)
         commit_output(store, out, overwrite=overwrite)
     return xr.open_zarr(out, decode_coords="all", consolidated=False)
 
@@ -566,8 +606,21 @@ def _carry_along_columns(carried: np.ndarray, pdx: np.ndarray, pdy: np.ndarray, 
 
 
 def scene_positions(ds: xr.Dataset, store: str | os.PathLike) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Where every output pixel lies in each block scene (``attrs["scenes"]`` order): its model,
-    or its dense field where the mosaic was refined (the positions the mosaic sampled)."""
+    """Where every output pixel lies in each block scene (the positions the mosaic sampled).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A mosaic (:func:`mosaic`).
+    store : str or PathLike
+        The mosaic's store (its ``dense/<n>`` groups hold the refined fields).
+
+    Returns
+    -------
+    list of tuple of ndarray
+        Per scene (``attrs["scenes"]`` order), the column and row of every output pixel in
+        the scene: from its adjusted model, or from its dense field where it was refined.
+    """
     models = load_models(ds)
     fields = json.loads(ds.attrs.get("dense_fields", "null")) or [None] * len(models)
     transform = ds.rio.transform()
@@ -665,7 +718,18 @@ def _attrs(summary: MosaicSummary, block: list[int], models: list, order: int, g
 
 
 def load_models(ds: xr.Dataset) -> list:
-    """The adjusted per-scene models of a mosaic: ``(MapPolynomial, params)`` in ``attrs["scenes"]`` order."""
+    """The adjusted per-scene models of a mosaic.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A mosaic (:func:`mosaic`).
+
+    Returns
+    -------
+    list of tuple
+        ``(MapPolynomial, params)`` per scene, in ``attrs["scenes"]`` order.
+    """
     from ..adjust.models import MapPolynomial
 
     return [(MapPolynomial(m["order"], tuple(m["origin"]), m["scale"]), np.asarray(m["params"]))

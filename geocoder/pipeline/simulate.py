@@ -26,6 +26,8 @@ from affine import Affine
 from ..conventions import pixel_grid
 from ..errors import InputError
 from ..geometry import pixel_to_world, world_to_pixel
+from ..multiscales import write_overviews
+from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..runtime import dask_client
 from ..scene import WindowReader, ingest, open_scene
@@ -186,7 +188,7 @@ def simulate(
     relief: float = 100.0,
     radiometry: Radiometry = Radiometry(),
     resampling: str = "cubic",
-    tile: int = 512,
+    tile: int | None = None,
     client=None,
     scheduler: str | None = None,
     overwrite: bool = False,
@@ -196,6 +198,8 @@ def simulate(
     Parameters
     ----------
     kind : {"airborne", "satellite"}
+        The sensor: an airborne line scanner (whisk-broom, turbulence) or a satellite
+        push-broom line scanner.
     ortho : path
         Georeferenced orthoimage (projected CRS, metres) used as the ground texture, or
         ``"synthetic"`` for a procedural 2048 x 2048 scene at 2 m made on the fly.
@@ -210,10 +214,17 @@ def simulate(
     sensor, rows, tilt_deg, turbulence_deg : airborne options (see :func:`airborne_over`).
     pixel : float, optional
         Satellite pixel size in metres (default twice the ortho's).
+    relief : float
+        Height range (m) of the fractal DEM made when no ``dem`` is given.
     radiometry : Radiometry
         Gain, offset and noise of the rendered image.
     resampling : str
         Interpolator used to sample the ortho.
+    tile : int, optional
+        Chunk of the rendered image; default :func:`geocoder.get_option` ``("tile")`` (512
+        unless set).
+    client, scheduler
+        Where to run (as :func:`geocoder.register`).
     overwrite : bool
         Replace an existing ``out`` if geocoder wrote it (never anything else).
 
@@ -224,6 +235,8 @@ def simulate(
     """
     if kind not in ("airborne", "satellite"):
         raise ValueError(f"kind must be 'airborne' or 'satellite', got {kind!r}")
+    if tile is None:
+        tile = get_option("tile")
     out = check_output(out, inputs=(ortho, dem), overwrite=overwrite)
     if not os.path.isdir(os.path.dirname(out)):
         raise InputError(out, "the output's parent directory does not exist")
@@ -312,6 +325,7 @@ def _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, t
             ds["image"].attrs["long_name"] = "simulated scanner image"
             ds = pixel_grid(ds)
             ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False).compute()
+            write_overviews(tmp, client=c)
         commit_output(tmp, out, overwrite=overwrite)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
