@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from contextlib import contextmanager
 from typing import Any, Iterator
 
@@ -229,6 +230,9 @@ def is_cluster_failure(exc: BaseException) -> bool:
         KilledWorker = CommClosedError
     if isinstance(exc, (CommClosedError, FutureCancelledError, KilledWorker, asyncio.CancelledError)):
         return True
+    # a call to the scheduler after the client closed its connections (it lost the scheduler)
+    if type(exc) is RuntimeError and str(exc) == "ConnectionPool is closed":
+        return True
     # the client's reconnection gave up: a plain OSError from distributed.comm.core.connect
     return type(exc) is OSError and exc.errno is None and str(exc).startswith("Timed out trying to connect")
 
@@ -263,11 +267,16 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     items = list(tasks.items())
     shared = not all(_single_task(t) for _, t in items)
     running: dict[int, tuple[str, Any]] = {}  # id(future) -> (key, future)
+    threads = {"n": 0, "asked": -float("inf")}
 
-    def room() -> int:  # asked again as each task finishes: workers may join or leave
+    def room() -> int:
         if shared:
             return len(items)
-        return 2 * max(1, sum(client.nthreads().values())) - len(running)
+        # workers may join or leave: asked again at most once a second (each ask is a round
+        # trip to the scheduler, 85 of them took 0.6 s of a 2048² job's client time)
+        if time.monotonic() - threads["asked"] > 1.0:
+            threads["n"], threads["asked"] = max(1, sum(client.nthreads().values())), time.monotonic()
+        return 2 * threads["n"] - len(running)
 
     n = room()
     first = client.compute([t for _, t in items[:n]])

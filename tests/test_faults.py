@@ -355,3 +355,21 @@ def test_scheduler_lost_mid_job_keeps_the_job(tmp_path):
     assert (tmp_path / ".o.zarr.geocoder-job" / "manifest.json").exists()
     assert not (tmp_path / ".o.zarr.geocoder-job" / "lock.json").exists() and not (tmp_path / "o.zarr").exists()
     assert down.returncode == 0 and "had already stopped" in down.stdout
+
+
+def test_lost_scheduler_forms_are_cluster_failures():
+    """Each way distributed reports a lost scheduler mid-call is told apart from a bug.
+
+    ``ConnectionPool is closed`` is what a call to the scheduler (e.g. ``Client.nthreads``)
+    raises once the client has given up on it: seen when the scheduler was killed mid
+    correspondence (test above), where it came out as a traceback.
+    """
+    from distributed.comm.core import CommClosedError
+
+    from geocoder.runtime import is_cluster_failure
+
+    assert is_cluster_failure(CommClosedError("in <TCP ...>: Stream is closed"))
+    assert is_cluster_failure(RuntimeError("ConnectionPool is closed"))
+    assert is_cluster_failure(OSError("Timed out trying to connect to tcp://127.0.0.1:1 after 30 s"))
+    assert not is_cluster_failure(RuntimeError("some other runtime error"))
+    assert not is_cluster_failure(ValueError("ConnectionPool is closed"))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future
 
 import dask
 import numpy as np
@@ -11,6 +12,7 @@ from rasterio.warp import transform as reproject_points
 
 from ..errors import GeocoderError
 from ..match.coarse import CoarseAlignment, align_overviews
+from ..runtime import current_client
 from ..scene import pixel_to_world, scene_transform, world_to_pixel
 
 
@@ -66,6 +68,57 @@ def coarse_alignment(
         A known approximate affine base pixel -> distorted pixel (e.g. both scenes already
         placed on a reference); it takes the georeference's place.
     """
+    return submit_coarse_alignment(base, dist, band=band, dist_band=dist_band, max_size=max_size,
+                                   use_georeference=use_georeference, prior=prior).result()
+
+
+class PendingAlignment:
+    """A coarse alignment computing on the cluster (:func:`submit_coarse_alignment`)."""
+
+    def __init__(self, future) -> None:
+        self._future = future
+
+    def result(self) -> CoarseAlignment:
+        """Wait for the alignment.
+
+        Returns
+        -------
+        CoarseAlignment
+
+        Raises
+        ------
+        GeocoderError
+            Why the scenes could not be aligned.
+        """
+        value = self._future.result()
+        if isinstance(value, GeocoderError):
+            raise value
+        return value
+
+    def cancel(self) -> None:
+        """Stop waiting: the cluster may drop the work (quietly, even if the cluster is gone)."""
+        try:
+            self._future.cancel()
+        except Exception:  # noqa: BLE001 - a lost scheduler or closed client: nothing left to cancel
+            pass
+
+
+def submit_coarse_alignment(
+    base: xr.DataArray,
+    dist: xr.DataArray,
+    *,
+    band: int = 0,
+    dist_band: int | None = None,
+    max_size: int = 512,
+    use_georeference: bool = True,
+    prior: np.ndarray | None = None,
+) -> PendingAlignment:
+    """:func:`coarse_alignment` started on the cluster; the caller goes on meanwhile.
+
+    Parameters and result as :func:`coarse_alignment` (through
+    :meth:`PendingAlignment.result`). Without a distributed client the alignment is computed
+    before this returns.
+    """
     dist_band = band if dist_band is None else dist_band
     largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
     factor = max(1, math.ceil(largest / max_size))
@@ -73,10 +126,13 @@ def coarse_alignment(
         prior = georeference_prior(base, dist)
     # one graph: the overviews and the alignment on them run on the cluster, not the client
     ob, od = (overview(s.isel(band=b), factor).data for s, b in ((base, band), (dist, dist_band)))
-    result = dask.delayed(_align, pure=True)(ob, od, factor, prior).compute()
-    if isinstance(result, GeocoderError):
-        raise result
-    return result
+    task = dask.delayed(_align, pure=True)(ob, od, factor, prior)
+    client = current_client()
+    if client is not None:
+        return PendingAlignment(client.compute(task))
+    done = Future()
+    done.set_result(task.compute())
+    return PendingAlignment(done)
 
 
 def _align(ob: np.ndarray, od: np.ndarray, factor: int, prior: np.ndarray | None) -> CoarseAlignment | GeocoderError:

@@ -19,11 +19,13 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
+import zarr
 
 from .. import progress, storage
 from ..errors import InputError, MatchingError
 from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap, exponents
+from ..multiscales import write_overviews
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
@@ -33,10 +35,10 @@ from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
-from ..scene import WindowReader, ingest, open_scene
+from ..scene import STATISTICS, WindowReader, band_statistics, ingest, open_scene
 from ..status import Status
 from ..tiles import TileGrid
-from .coarse import coarse_alignment
+from .coarse import submit_coarse_alignment
 from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points
@@ -55,9 +57,38 @@ LONG_NAMES = {
 
 @dataclass(frozen=True)
 class RegisterOptions:
-    """Everything :func:`register` can be told, with the seed's defaults."""
+    """Everything :func:`register` can be told, with the seed's defaults.
 
-    tile: int | None = None  # None: geocoder.get_option("tile") (512 unless set)
+    Attributes
+    ----------
+    tile : int or None
+        Tile (chunk) size of every tile-parallel stage, a multiple of 64; None:
+        :func:`geocoder.get_option` ``("tile")`` (512 unless set).
+    resampling : {"nearest", "bilinear", "cubic", "lanczos"}
+        Interpolator of the single resampling.
+    band, dist_band : int
+        1-based band matched in the base and the distorted scene (``dist_band`` None: ``band``).
+    order : int
+        Order of the global polynomial (2: the seed's quadratic).
+    passes : int
+        Correspondence passes (the later ones match every base point from the fitted polynomial).
+    min_tiepoints : int
+        Fewest tie points a registration accepts.
+    interest : InterestOptions
+        The Foerstner interest operator.
+    correspondence : CorrespondenceOptions
+        Matching of the interest points (robust correspondence).
+    use_georeference : bool
+        Start the coarse alignment from the scenes' georeferences when both have one.
+    dense : bool
+        Match every pixel (False: stop at the global polynomial).
+    matching : DenseOptions
+        The dense matching (region growing, halo exchange).
+    postfilter : PostFilterOptions
+        The scan-line post-filter of the dense field.
+    """
+
+    tile: int | None = None
     resampling: str = "bilinear"
     band: int = 1
     dist_band: int | None = None
@@ -72,6 +103,7 @@ class RegisterOptions:
     postfilter: PostFilterOptions = field(default_factory=PostFilterOptions)
 
     def validate(self) -> None:
+        """Check every option; raise ValueError naming the first that is out of range."""
         if self.tile is None:
             return replace(self, tile=get_option("tile")).validate()
         if self.resampling not in RESAMPLING:
@@ -176,19 +208,29 @@ def find_tiepoints(
 
     band = opts.band - 1
     dband = (opts.dist_band or opts.band) - 1
-    with timer("coarse alignment"):
-        coarse = cached("coarse", lambda: coarse_alignment(base, dist, band=band, dist_band=dband,
-                                                        use_georeference=opts.use_georeference, prior=prior))
+    # the coarse alignment (one task) runs on the cluster while the interest points are found;
+    # its stage time is what is left of it after them
+    pending = None
+    if job is None or not job.done("coarse"):
+        pending = submit_coarse_alignment(base, dist, band=band, dist_band=dband,
+                                          use_georeference=opts.use_georeference, prior=prior)
+    try:
+        with timer("interest points"):
+            if points is None:
+                bpts = interest_points(base.data[band], opts.interest, job=job, name="base", reader=base_reader, band=band)
+                dpts = interest_points(dist.data[dband], opts.interest, job=job, name="distorted", reader=dist_reader, band=dband)
+            else:
+                bpts, dpts = points
+        with timer("coarse alignment"):
+            coarse = cached("coarse", lambda: pending.result())  # pending is None when cached
+    except BaseException:
+        if pending is not None:
+            pending.cancel()  # never raises: the error that got here is the one to report
+        raise
     summary.coarse_method = f"{coarse.method} (pyramid 1/{coarse.factor}, peak {coarse.peak:.2f})"
     base_shape = (base.sizes["y"], base.sizes["x"])
     dist_shape = (dist.sizes["y"], dist.sizes["x"])
     _check_overlap(coarse.mapping, base_shape, dist_shape, base.attrs["source"], dist.attrs["source"])
-    with timer("interest points"):
-        if points is None:
-            bpts = interest_points(base.data[band], opts.interest, job=job, name="base", reader=base_reader, band=band)
-            dpts = interest_points(dist.data[dband], opts.interest, job=job, name="distorted", reader=dist_reader, band=dband)
-        else:
-            bpts, dpts = points
     summary.base_points, summary.distorted_points = len(bpts), len(dpts)
     for pts, scene in ((bpts, base), (dpts, dist)):
         if len(pts) < opts.min_tiepoints:
@@ -264,6 +306,9 @@ def register(
         :func:`geocoder.set_options` or Dask config ``geocoder.tile``).
     client : distributed.Client, optional
         Where to run; default ``scheduler`` or ``DASK_SCHEDULER_ADDRESS``, else a local cluster.
+    scheduler : str, optional
+        Address of a Dask scheduler (or the ``cluster.json`` of ``geocoder cluster up``) to
+        connect to when no ``client`` is given.
     band, dist_band : int
         1-based band used for matching (``dist_band`` defaults to ``band``).
     order : int
@@ -328,15 +373,16 @@ def register(
         progress.current().message(f"Dask dashboard: {c.dashboard_link}")
         ds, counts, tp = _run(job, bscene, dscene, opts, summary, timer, c, in_memory=out is None)
         summary.status_counts = {Status(i).name.lower(): int(n) for i, n in enumerate(counts) if n}
-        summary.job = job.report()
-        ds.attrs["summary"] = json.dumps(asdict(summary))
         if out is None:
+            summary.job = job.report()
+            ds.attrs["summary"] = json.dumps(asdict(summary))
             ds.attrs["tiepoints"] = _tiepoint_dataset(tp)
             return ds
         store = job.file("output.zarr")
+        with timer("overview levels"):
+            write_overviews(store, client=c)  # in the store before it is committed
+        summary.job = job.report()
         _tiepoint_dataset(tp).to_zarr(store, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
-        import zarr
-
         zarr.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
         commit_output(store, out, overwrite=overwrite)
     return xr.open_zarr(out, decode_coords="all", consolidated=False)
@@ -399,10 +445,15 @@ def _check_size(scene: xr.DataArray) -> None:
 
 
 def _check_content(scene: xr.DataArray, band: int) -> None:
-    """Refuse a matching band with fewer than ``MIN_SIDE**2`` valid pixels or one value only."""
-    image = scene.data[band - 1]
-    valid = da.isfinite(image)
-    n, lo, hi = dask.compute(valid.sum(), da.where(valid, image, np.inf).min(), da.where(valid, image, -np.inf).max())
+    """Refuse a matching band with fewer than ``MIN_SIDE**2`` valid pixels or one value only.
+
+    An ingested scene carries the figures (:data:`geocoder.scene.STATISTICS`); others are read.
+    """
+    stats = scene.attrs.get(STATISTICS)
+    if stats is not None:
+        n, lo, hi = (stats[k][band - 1] for k in ("valid", "min", "max"))
+    else:
+        n, lo, hi = (v[band - 1] for v in dask.compute(*band_statistics(scene.data)))
     source = scene.attrs.get("source")
     if n == 0:
         raise InputError(source, f"band {band} has no valid pixels (all nodata)")
@@ -471,8 +522,6 @@ def _ingest(job: Job, name: str, scene: xr.DataArray, tile: int, client) -> xr.D
 
 
 def _write_tile(store: str, window: tuple[int, int, int, int], names: tuple[str, ...], *blocks: np.ndarray) -> np.ndarray:
-    import zarr
-
     r0, r1, c0, c1 = window
     g = zarr.open_group(store, mode="r+")
     for name, block in zip(names, blocks):
