@@ -11,8 +11,6 @@ from __future__ import annotations
 import os
 import warnings
 
-import dask
-import dask.array
 import numpy as np
 import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
@@ -27,10 +25,6 @@ from .outputs import check_output, commit_output, product_attrs
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 
 IMAGE_VAR = "image"
-
-#: Attribute of an ingested ``image`` array: per band, the number of valid pixels and their
-#: minimum and maximum (None for a band without valid pixels), computed while ingesting.
-STATISTICS = "statistics"
 
 
 def _is_zarr(path: str) -> bool:
@@ -142,24 +136,11 @@ def open_scene(
         # pixel index coordinates, as the conventions say (x = column, y = row)
         da = da.assign_coords(x=np.arange(da.sizes["x"], dtype=np.float64), y=np.arange(da.sizes["y"], dtype=np.float64))
     da = da.assign_coords(band=np.arange(1, da.sizes["band"] + 1))
-    stats = da.attrs.get(STATISTICS) if nodata is None and bands is None else None
     da.attrs = {"source": spath, "source_dtype": source_dtype, "georeferenced": bool(georef)}
-    if stats is not None:
-        da.attrs[STATISTICS] = stats
     da.name = IMAGE_VAR
     if georef:
         da = da.rio.write_crs(crs).rio.write_transform(transform)
     return da
-
-
-def band_statistics(image: dask.array.Array) -> tuple[dask.array.Array, dask.array.Array, dask.array.Array]:
-    """Per band of a ``(band, y, x)`` array: the number of valid (finite) pixels, their minimum and maximum.
-
-    Lazy; an all-nodata band has minimum ``inf`` and maximum ``-inf``.
-    """
-    valid = dask.array.isfinite(image)
-    return (valid.sum(axis=(1, 2)), dask.array.where(valid, image, np.inf).min(axis=(1, 2)),
-            dask.array.where(valid, image, -np.inf).max(axis=(1, 2)))
 
 
 def scene_transform(scene: xr.DataArray) -> Affine | None:
@@ -250,13 +231,11 @@ def ingest(
         ds = pixel_grid(ds)
     try:
         delayed = ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False)
-        # the statistics share the graph's reads of the source: no second pass over the scene
-        stats = band_statistics(ds[IMAGE_VAR].data)
         try:
             if client is not None:
-                _, *values = client.gather(client.compute([delayed, *stats]))
+                client.compute(delayed).result()
             else:
-                _, *values = dask.compute(delayed, *stats)
+                delayed.compute()
         except Exception as exc:
             failure = as_environment_failure(exc, out)
             if failure is not None:
@@ -265,10 +244,6 @@ def ingest(
                 raise InputError(scene.attrs.get("source", "input"),
                                  f"cannot be read, the file is truncated or damaged ({_first_line(exc)})") from exc
             raise
-        count, lo, hi = (np.asarray(v) for v in values)
-        zarr.open_group(tmp, mode="r+")[IMAGE_VAR].attrs[STATISTICS] = {
-            "valid": count.tolist(), "min": [float(v) if n else None for v, n in zip(lo, count)],
-            "max": [float(v) if n else None for v, n in zip(hi, count)]}
     except BaseException:
         if atomic:
             storage.remove(tmp)

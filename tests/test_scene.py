@@ -6,7 +6,7 @@ import zarr
 from affine import Affine
 
 from geocoder import InputError, ingest, open_scene
-from geocoder.scene import STATISTICS, WindowReader, pixel_to_world, world_to_pixel, write_geotiff
+from geocoder.scene import WindowReader, pixel_to_world, world_to_pixel, write_geotiff
 
 S2 = "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif"
 RGB = "landsat7_rasterio/RGB.byte.tif"
@@ -49,19 +49,6 @@ def test_ingest_zarr_v3_roundtrip(shared_data, tmp_path, client):
     assert not [p for p in os.listdir(tmp_path) if "partial" in p]
     win = WindowReader(str(out)).read(-5, 20, 780, 800)  # clipped, NaN outside
     assert win.shape == (3, 25, 20) and np.isnan(win[:, :5]).all() and np.isnan(win[:, :, 11:]).all()
-    # per-band statistics computed while ingesting, carried by the reopened scene
-    values = open_scene(shared_data / RGB).values
-    stats = z.attrs[STATISTICS]
-    assert stats["valid"] == np.isfinite(values).sum(axis=(1, 2)).tolist()
-    assert stats["min"] == np.nanmin(values, axis=(1, 2)).tolist() and stats["max"] == np.nanmax(values, axis=(1, 2)).tolist()
-    assert STATISTICS not in open_scene(out, bands=[1]).attrs, "a band selection does not carry them"
-
-
-def test_ingest_statistics_of_a_band_without_valid_pixels(tmp_path, client):
-    image = np.stack([np.arange(64.0 * 64).reshape(64, 64), np.full((64, 64), np.nan)])
-    write_geotiff(tmp_path / "two.tif", image)
-    z = ingest(tmp_path / "two.tif", tmp_path / "two.zarr", tile=64, client=client)
-    assert z.attrs[STATISTICS] == {"valid": [4096, 0], "min": [0.0, None], "max": [4095.0, None]}
 
 
 def test_missing_and_unreadable_files(tmp_path):

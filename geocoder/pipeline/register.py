@@ -35,7 +35,7 @@ from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
-from ..scene import STATISTICS, WindowReader, band_statistics, ingest, open_scene
+from ..scene import WindowReader, ingest, open_scene
 from ..status import Status
 from ..tiles import TileGrid
 from .coarse import submit_coarse_alignment
@@ -394,8 +394,7 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
         bscene = _ingest(job, "base", bscene, opts.tile, c)
         dscene = _ingest(job, "distorted", dscene, opts.tile, c)
     if not job.done("content"):
-        _check_content(bscene, opts.band)
-        _check_content(dscene, opts.dist_band or opts.band)
+        _check_content([(bscene, opts.band), (dscene, opts.dist_band or opts.band)])
         job.save("content")
     breader = WindowReader(job.file("base.zarr"))
     dreader = WindowReader(job.file("distorted.zarr"))
@@ -444,23 +443,28 @@ def _check_size(scene: xr.DataArray) -> None:
         raise InputError(scene.attrs.get("source"), f"is {w} x {h} px; registration needs at least {MIN_SIDE} x {MIN_SIDE}")
 
 
-def _check_content(scene: xr.DataArray, band: int) -> None:
+def _check_content(scenes: list[tuple[xr.DataArray, int]]) -> None:
     """Refuse a matching band with fewer than ``MIN_SIDE**2`` valid pixels or one value only.
 
-    An ingested scene carries the figures (:data:`geocoder.scene.STATISTICS`); others are read.
+    ``scenes`` are ``(scene, 1-based band)``; their figures are computed in one graph.
     """
-    stats = scene.attrs.get(STATISTICS)
-    if stats is not None:
-        n, lo, hi = (stats[k][band - 1] for k in ("valid", "min", "max"))
-    else:
-        n, lo, hi = (v[band - 1] for v in dask.compute(*band_statistics(scene.data)))
-    source = scene.attrs.get("source")
-    if n == 0:
-        raise InputError(source, f"band {band} has no valid pixels (all nodata)")
-    if n < MIN_SIDE**2:
-        raise InputError(source, f"band {band} has only {int(n)} valid pixels; registration needs at least {MIN_SIDE**2}")
-    if lo == hi:
-        raise InputError(source, f"band {band} is constant ({float(lo):g} everywhere): there is nothing to match")
+    figures = dask.compute(*(_band_statistics(scene.data[band - 1 : band]) for scene, band in scenes))
+    for (scene, band), (n, lo, hi) in zip(scenes, figures):
+        n, lo, hi = n[0], lo[0], hi[0]
+        source = scene.attrs.get("source")
+        if n == 0:
+            raise InputError(source, f"band {band} has no valid pixels (all nodata)")
+        if n < MIN_SIDE**2:
+            raise InputError(source, f"band {band} has only {int(n)} valid pixels; registration needs at least {MIN_SIDE**2}")
+        if lo == hi:
+            raise InputError(source, f"band {band} is constant ({float(lo):g} everywhere): there is nothing to match")
+
+
+def _band_statistics(image: da.Array) -> tuple[da.Array, da.Array, da.Array]:
+    """Per band of a ``(band, y, x)`` array: the number of valid (finite) pixels, their minimum and maximum (lazy)."""
+    valid = da.isfinite(image)
+    return (valid.sum(axis=(1, 2)), da.where(valid, image, np.inf).min(axis=(1, 2)),
+            da.where(valid, image, -np.inf).max(axis=(1, 2)))
 
 
 def job_directory(out: str) -> str:
