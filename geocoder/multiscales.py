@@ -336,8 +336,10 @@ def write_overviews(
     if not shapes:
         return []
 
+    cy, cx = levels.chunks[names[0]][-2:]
+    tiles = [-(-h // cy) * -(-w // cx) for h, w in shapes]  # the progress counts each level's output chunks
     bar = progress.current()
-    bar.phase("overview levels", len(shapes))
+    bar.phase("overview levels", sum(tiles))
     try:
         for k in range(1, len(shapes) + 1):
             level, counts = levels.dataset(k)
@@ -346,7 +348,7 @@ def write_overviews(
                 writes.append(counts.to_zarr(store, group=f"{COUNTS_GROUP}/{k}", mode="w", zarr_format=3,
                                              consolidated=False, compute=False))
             dask.compute(*writes, **({"scheduler": client} if client is not None else {}))
-            bar.advance()
+            bar.advance(tiles[k - 1])
     finally:
         bar.close()
         storage.remove(storage.join(store, COUNTS_GROUP))
