@@ -22,6 +22,9 @@ class Status(IntEnum):
         4: not matched: too little texture.
     MODEL : int
         5: displacement from the global polynomial only.
+    ESTIMATED : int
+        6: not matched (no texture or a rejected blunder); the global polynomial plus the
+        mean residual of the matches of its scan line (:mod:`geocoder.quality.lines`).
     """
 
     OUTSIDE = 0
@@ -30,6 +33,7 @@ class Status(IntEnum):
     BLUNDER = 3
     NO_TEXTURE = 4
     MODEL = 5
+    ESTIMATED = 6
 
 
 def legend() -> dict[str, int]:

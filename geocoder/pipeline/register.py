@@ -33,6 +33,7 @@ from ..conventions import georeference, pixel_grid, status_attrs
 from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
+from ..quality.lines import LineOptions
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
 from ..scene import WindowReader, ingest, open_scene
@@ -43,6 +44,7 @@ from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points
 from .job import Job, JobRun, fingerprint
+from .lines import apply_corrections, row_corrections
 from .resample import model_status, polynomial_displacement, resample
 
 log = logging.getLogger("geocoder")
@@ -86,6 +88,8 @@ class RegisterOptions:
         The dense matching (region growing, halo exchange).
     postfilter : PostFilterOptions
         The scan-line post-filter of the dense field.
+    lines : LineOptions
+        The per-line estimates of the unmatched pixels (:mod:`geocoder.quality.lines`).
     """
 
     tile: int | None = None
@@ -101,6 +105,7 @@ class RegisterOptions:
     dense: bool = True
     matching: DenseOptions = field(default_factory=DenseOptions)
     postfilter: PostFilterOptions = field(default_factory=PostFilterOptions)
+    lines: LineOptions = field(default_factory=LineOptions)
 
     def validate(self) -> None:
         """Check every option; raise ValueError naming the first that is out of range."""
@@ -112,6 +117,7 @@ class RegisterOptions:
             raise ValueError(f"tile must be a multiple of {self.interest.cell} and >= 64, got {self.tile}")
         if not 1 <= self.order <= 3:
             raise ValueError(f"order must be 1, 2 or 3, got {self.order}")
+        self.lines.validate()
 
 
 @dataclass
@@ -413,6 +419,9 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
         summary.dense_converged = result.converged
         summary.dense_new_per_round = result.new_per_round
         field_ = dense_field(result, (dx, dy), opts.postfilter)
+        if opts.lines.enabled:
+            with timer("line estimates"):
+                field_ = apply_corrections(field_, (dx, dy), row_corrections(field_, (dx, dy), opts.lines))
         dx, dy = field_["dx"], field_["dy"]
         extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
     registered = resample(dreader, dx, dy, method=opts.resampling)

@@ -1,0 +1,183 @@
+"""Per-line estimates of the displacement where nothing was matched (issue 14).
+
+A scanner's turbulence moves a whole scan line at once (seed 003 secs. 9-10): after the
+global polynomial, what is left of the displacement is nearly the same for every pixel of a
+line. So a pixel that could not be matched (no texture, a rejected blunder) but whose line
+holds matches is better placed by the polynomial plus its line's mean residual than by the
+polynomial alone, which cannot know the line's shift.
+
+* :func:`line_sums` sums, per row of a block, the residuals ``d - polynomial`` of the
+  usable pixels (matched or filled) and their squares; blocks of one row band add up.
+* :func:`line_corrections` turns the sums of whole rows into a correction per row: the
+  mean residual of a row with at least ``min_count`` usable pixels; for a row without,
+  the linear interpolation between the nearest rows above and below that have one, if
+  at most ``max_gap`` rows lie between them; nothing otherwise (never extrapolated past
+  the first or last row with data). Its sigma is the spread of the row's residuals about
+  their mean (how far a single shift per line is from the matches), for an interpolated
+  row the larger of its two neighbours' plus half the step between their corrections.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Quantities :func:`line_sums` returns per row, in this order: added over the blocks of a row
+#: band, except ``first`` (the smallest column of a usable pixel; +inf without) and ``last``
+#: (the largest; -inf without), reduced by min and max (:func:`combine_sums`).
+SUMS = ("count", "sum_x", "sum_y", "sum_xx", "sum_yy", "sigma_count", "sum_sxx", "sum_syy", "first", "last")
+
+
+@dataclass(frozen=True)
+class LineOptions:
+    """Options of the per-line estimates.
+
+    Attributes
+    ----------
+    enabled : bool
+        Give unmatched pixels of the overlap the per-line estimate (False: the polynomial).
+    min_count : int
+        Fewest usable (matched or filled) pixels a row needs for its own correction.
+    max_gap : int
+        Most consecutive rows without their own correction interpolated across.
+    """
+
+    enabled: bool = True
+    min_count: int = 32
+    max_gap: int = 8
+
+    def validate(self) -> None:
+        """Raise ValueError if an option is out of range."""
+        if int(self.min_count) != self.min_count or self.min_count < 1:
+            raise ValueError(f"min_count must be an integer >= 1, got {self.min_count!r}")
+        if int(self.max_gap) != self.max_gap or self.max_gap < 0:
+            raise ValueError(f"max_gap must be an integer >= 0, got {self.max_gap!r}")
+
+
+def line_sums(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray, usable: np.ndarray,
+              sigma_x: np.ndarray, sigma_y: np.ndarray, col0: int = 0) -> np.ndarray:
+    """Per row of a block: :data:`SUMS` of its usable pixels (residuals ``d - p``, their squares,
+    the squared sigmas of the matches, and the columns of the first and last usable pixel).
+
+    Parameters
+    ----------
+    dx, dy : ndarray (H, W)
+        Displacement of the dense field.
+    px, py : ndarray (H, W)
+        Displacement of the global polynomial.
+    usable : ndarray of bool (H, W)
+        Pixels whose ``dx, dy`` rest on matches (matched or filled).
+    sigma_x, sigma_y : ndarray (H, W)
+        Standard deviations of the matches (NaN where none, e.g. filled pixels).
+    col0 : int
+        Column of the block's first pixel in the scene.
+
+    Returns
+    -------
+    ndarray (10, H), float64
+        The rows of :data:`SUMS`.
+    """
+    ex = np.where(usable, np.asarray(dx, np.float64) - px, 0.0)
+    ey = np.where(usable, np.asarray(dy, np.float64) - py, 0.0)
+    has_sigma = usable & np.isfinite(sigma_x) & np.isfinite(sigma_y)
+    vx = np.where(has_sigma, np.asarray(sigma_x, np.float64) ** 2, 0.0)
+    vy = np.where(has_sigma, np.asarray(sigma_y, np.float64) ** 2, 0.0)
+    cols = np.arange(usable.shape[-1], dtype=np.float64) + col0
+    first = np.where(usable, cols, np.inf).min(axis=-1)
+    last = np.where(usable, cols, -np.inf).max(axis=-1)
+    return np.stack([usable.sum(axis=-1).astype(np.float64), ex.sum(axis=-1), ey.sum(axis=-1),
+                     (ex * ex).sum(axis=-1), (ey * ey).sum(axis=-1), has_sigma.sum(axis=-1).astype(np.float64),
+                     vx.sum(axis=-1), vy.sum(axis=-1), first, last])
+
+
+def combine_sums(parts: np.ndarray) -> np.ndarray:
+    """:data:`SUMS` of whole rows from those of the blocks along them (last axis).
+
+    Parameters
+    ----------
+    parts : ndarray (10, H, B)
+        :func:`line_sums` of the ``B`` blocks of every row band.
+
+    Returns
+    -------
+    ndarray (10, H)
+    """
+    out = parts.sum(axis=-1)
+    out[8], out[9] = parts[8].min(axis=-1), parts[9].max(axis=-1)
+    return out
+
+
+@dataclass(frozen=True)
+class LineCorrection:
+    """Correction per row (:func:`line_corrections`); NaN where a row has none.
+
+    Attributes
+    ----------
+    cx, cy : ndarray (H,)
+        Correction of x and y (px) added to the polynomial's displacement.
+    sx, sy : ndarray (H,)
+        Standard deviation of a pixel's estimate in x and y (px).
+    own : ndarray of bool (H,)
+        The row's correction rests on its own matches (False: interpolated, or none).
+    first, last : ndarray (H,)
+        Columns between which a row's pixels may be estimated: the span of its usable
+        pixels (of an interpolated row, the overlap of its two neighbours' spans); never
+        past the data along the line.
+    """
+
+    cx: np.ndarray
+    cy: np.ndarray
+    sx: np.ndarray
+    sy: np.ndarray
+    own: np.ndarray
+    first: np.ndarray
+    last: np.ndarray
+
+
+def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8) -> LineCorrection:
+    """A correction per row from the sums of whole rows (:func:`line_sums` added over the row).
+
+    Parameters
+    ----------
+    sums : ndarray (5, H)
+        :data:`SUMS` of every row, over the row's full width.
+    min_count : int
+        Fewest usable pixels a row needs for its own correction.
+    max_gap : int
+        Most consecutive rows without their own correction that are interpolated across.
+
+    Returns
+    -------
+    LineCorrection
+    """
+    n, sx_, sy_, sxx, syy, ns, svx, svy, first, last = np.asarray(sums, dtype=np.float64)
+    rows = n.size
+    own = n >= max(min_count, 1)
+    safe = np.where(own, n, 1.0)
+    cx, cy = sx_ / safe, sy_ / safe
+    # The spread of the residuals about the line's mean is the matches' own noise plus how
+    # far the line is from one shift; only the latter reaches an estimate, so the matches'
+    # mean variance comes off (floored at the standard error of the mean).
+    noise_x, noise_y = svx / np.maximum(ns, 1.0), svy / np.maximum(ns, 1.0)
+    vx = np.maximum(sxx / safe - cx * cx - noise_x, 0.0) + (sxx / safe - cx * cx).clip(0.0) / safe
+    vy = np.maximum(syy / safe - cy * cy - noise_y, 0.0) + (syy / safe - cy * cy).clip(0.0) / safe
+    out = {k: np.full(rows, np.nan) for k in ("cx", "cy", "sx", "sy", "first", "last")}
+    if not own.any():
+        return LineCorrection(**out, own=own)
+    idx = np.arange(rows)
+    out["cx"][own], out["cy"][own] = cx[own], cy[own]
+    out["sx"][own], out["sy"][own] = np.sqrt(vx[own]), np.sqrt(vy[own])
+    out["first"][own], out["last"][own] = first[own], last[own]
+    # the nearest rows with their own correction above and below every row
+    above = np.maximum.accumulate(np.where(own, idx, -1))
+    below = np.minimum.accumulate(np.where(own, idx, rows)[::-1])[::-1]
+    gap = (~own) & (above >= 0) & (below < rows) & (below - above - 1 <= max_gap)
+    if gap.any():
+        a, b = above[gap], below[gap]
+        t = (idx[gap] - a) / (b - a)
+        for c, v, name in ((cx, vx, "x"), (cy, vy, "y")):
+            out[f"c{name}"][gap] = (1.0 - t) * c[a] + t * c[b]
+            out[f"s{name}"][gap] = np.sqrt(np.maximum(v[a], v[b])) + 0.5 * np.abs(c[b] - c[a])
+        out["first"][gap], out["last"][gap] = np.maximum(first[a], first[b]), np.minimum(last[a], last[b])
+    return LineCorrection(**out, own=own)
