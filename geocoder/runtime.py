@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import time
 from contextlib import contextmanager
 from typing import Any, Iterator
 
@@ -267,16 +266,11 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     items = list(tasks.items())
     shared = not all(_single_task(t) for _, t in items)
     running: dict[int, tuple[str, Any]] = {}  # id(future) -> (key, future)
-    threads = {"n": 0, "asked": -float("inf")}
 
-    def room() -> int:
+    def room() -> int:  # asked again as each task finishes: workers may join or leave
         if shared:
             return len(items)
-        # workers may join or leave: asked again at most once a second (each ask is a round
-        # trip to the scheduler, 85 of them took 0.6 s of a 2048² job's client time)
-        if time.monotonic() - threads["asked"] > 1.0:
-            threads["n"], threads["asked"] = max(1, sum(client.nthreads().values())), time.monotonic()
-        return 2 * threads["n"] - len(running)
+        return 2 * max(1, sum(client.nthreads().values())) - len(running)
 
     n = room()
     first = client.compute([t for _, t in items[:n]])
