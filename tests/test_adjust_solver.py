@@ -578,9 +578,9 @@ def test_fixed_parameters_stay_and_match_dense_solution():
     assert full.converged and full.params[2][4] == fixed_value
 
 
-def test_collinearity_strip_converges_from_perturbed_start():
+def _collinearity_strip(mdl: Collinearity) -> tuple[Problem, list[np.ndarray]]:
+    """Three overlapping frames, 12 control points, ties, 0.2 px noise, perturbed start."""
     rng = np.random.default_rng(13)
-    mdl = Collinearity()
     truth = [
         np.r_[1000.0 + 2000.0 * k, 2500.0, 5000.0, rng.normal(0, 0.01, 3)]
         for k in range(3)
@@ -620,6 +620,11 @@ def test_collinearity_strip_converges_from_perturbed_start():
         xy,
         np.broadcast_to(np.eye(2) / 0.2**2, (of.size, 2, 2)).copy(),
     )
+    return prob, truth
+
+
+def test_collinearity_strip_converges_from_perturbed_start():
+    prob, truth = _collinearity_strip(Collinearity())
     res = adjust(prob)
     assert res.converged
     assert 0.8 < res.sigma0 < 1.2
@@ -627,3 +632,37 @@ def test_collinearity_strip_converges_from_perturbed_start():
         err = res.params[f] - truth[f]
         assert np.all(np.abs(err) < 5 * np.sqrt(np.diag(res.param_cov[f])))
     assert np.abs(res.residuals).max() < 6 * 0.2
+
+
+class NoisyCollinearity(Collinearity):
+    """The frame camera with a deterministic 1e-10 px evaluation noise (like an iterative solve)."""
+
+    def project(self, p: np.ndarray, g: np.ndarray) -> np.ndarray:
+        xy = super().project(p, g)
+        phase = 1e9 * (p.sum() + g.sum(axis=1))  # changes at every parameter or ground change
+        return xy + 1e-10 * np.sin(phase)[:, None] * np.array([1.0, -1.0])
+
+
+def test_relative_convergence_works_below_the_model_noise():
+    """The absolute step test cannot pass below a model's evaluation noise; the relative one does.
+
+    With ``tol`` below the noise of the numeric Jacobians (1e-10 px / 0.01 m steps), the
+    absolute test never fires (``rtol = 0`` runs to ``max_iter``); the relative test stops after a
+    few iterations at the same solution.  So does a bilinear affine block with ``tol = 0``.
+    """
+    prob, _ = _collinearity_strip(NoisyCollinearity())
+    ref, _ = _collinearity_strip(Collinearity())
+    exact = adjust(ref, AdjustOptions(covariance=False))
+    absolute = adjust(prob, AdjustOptions(tol=1e-12, rtol=0.0, max_iter=12, covariance=False))
+    assert not absolute.converged and absolute.iterations == 12 and absolute.convergence == ""
+    relative = adjust(prob, AdjustOptions(tol=1e-12, covariance=False))
+    assert relative.converged and relative.convergence == "relative" and relative.iterations <= 8
+    for f in range(3):
+        np.testing.assert_allclose(relative.params[f], exact.params[f], rtol=0, atol=1e-4)
+    # Levenberg-Marquardt kept: the damped run reaches the same solution by the relative test
+    damped = adjust(prob, AdjustOptions(tol=1e-12, damping=1.0, covariance=False))
+    assert damped.converged and damped.convergence == "relative"
+    for f in range(3):
+        np.testing.assert_allclose(damped.params[f], exact.params[f], rtol=0, atol=1e-4)
+    linear = adjust(affine_block(3, n_tie=150)["problem"], AdjustOptions(tol=0.0, covariance=False))
+    assert linear.converged and linear.convergence == "relative" and linear.iterations <= 5

@@ -24,6 +24,7 @@ from ..simulate.points import (
 )
 from ..simulate.satellite import LineScanner, ecef_to_geodetic, landsat_mss_like
 from .block import CheckErrors, build_problem, check_errors
+from .dem import DEM
 from .models import LineScannerModel, Polynomial2D
 from .solver import AdjustOptions, AdjustResult, Frame, adjust
 
@@ -155,18 +156,22 @@ def single_frame_table(*, seed: int = 1, counts=(10, 15, 25, 40, 81), perfect: b
 OPTIONS = AdjustOptions(max_iter=15, tol=1e-3, covariance=False)
 
 
-def block_setup(*, seed: int = 7, strips: int = 3, frames: int = 3, tie_per_overlap: int = 8, size: float = 1.0):
+def block_setup(*, seed: int = 7, strips: int = 3, frames: int = 3, tie_per_overlap: int = 8, size: float = 1.0,
+                terrain=rolling_terrain, altitude: float = 917e3):
     """Truth frames, perturbed grid/check/tie points and all image observations of a block.
 
-    ``size`` < 1 shrinks the frames (and the 20 km / 10 km grids with them) for quick tests.
+    ``size`` < 1 shrinks the frames (and the 20 km / 10 km grids with them) for quick tests;
+    ``terrain(lat, lon) -> h`` (radians in, metres out) gives the points' true heights;
+    ``altitude`` (m) the orbit's (a lower orbit sees the same swath under wider angles).
     """
     rows, cols, swath = int(2340 * size), int(3240 * size), 185e3 * size
-    truths = block_of_strips(strips=strips, frames=frames, seed=seed, rows=rows, cols=cols, swath=swath)
+    truths = block_of_strips(strips=strips, frames=frames, seed=seed, rows=rows, cols=cols, swath=swath,
+                             altitude=altitude)
     sp = 20e3 * size
-    grid = grid_points(truths, spacing=sp, role="control", margin=10, heights=rolling_terrain)
+    grid = grid_points(truths, spacing=sp, role="control", margin=10, heights=terrain)
     check = grid_points(truths, spacing=sp, offset=(sp / 2, sp / 2), role="check", margin=10, id_start=100000,
-                        heights=rolling_terrain)
-    extra = tie_points(truths, per_overlap=tie_per_overlap, seed=seed + 5, id_start=200000, heights=rolling_terrain)
+                        heights=terrain)
+    extra = tie_points(truths, per_overlap=tie_per_overlap, seed=seed + 5, id_start=200000, heights=terrain)
     grid_p = perturb_ground(grid, seed=seed + 1)
     check_p = perturb_ground(check, seed=seed + 2)
     ties_extra = perturb_ground(extra, seed=seed + 3)
@@ -391,4 +396,86 @@ def edge_equivalence(rows: list[dict], key: str = "model") -> list[dict]:
         out.append({**r, "points_eq": eq, "points_eq_bound": bound, "pairs_per_point": r["pairs"] / eq,
                     "points_third": third["mean"] if third else float("nan"),
                     "model_third": third["model"] if third else float("nan")})
+    return out
+
+
+#: Levenberg-Marquardt for the relief cases: free tie heights along near-parallel rays are
+#: nearly singular and plain Gauss-Newton steps can throw them off the frames
+DEM_OPTIONS = AdjustOptions(max_iter=30, tol=1e-3, damping=1e-3, covariance=False)
+
+
+def mountain_terrain(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """Heights of a mountain range (about 300-2700 m, ~12 km wavelengths), radians in."""
+    la, lo = np.rad2deg(lat), np.rad2deg(lon)
+    return 1500.0 + 900.0 * np.sin(la * 55.0) * np.cos(lo * 30.0) + 300.0 * np.sin(lo * 90.0 + 0.5)
+
+
+def dem_case(*, seed: int = 7, total: int = 8, size: float = 0.3, tie_per_overlap: int = 6,
+             dem_sigma: float = 10.0, dem_spacing: float = 0.003, strips: int = 3, frames: int = 1,
+             altitude: float = 917e3, control_strips: int | None = 1) -> dict:
+    """Tie heights over relief: free, held to a DEM, or held to their a-priori values (seed sec. 2.5).
+
+    ``strips x frames`` frames over :func:`mountain_terrain` (300-2700 m); ``total`` grid control
+    points, by default all in the first strip (``control_strips``; ``None`` spreads them over the
+    block), so that the other strips hang on the tie points (the other grid points seen twice and
+    random overlap points).  Three adjustments of the same observations, differing only in the
+    tie points' heights: free (no prior at all); held to a DEM (the terrain sampled every
+    ``dem_spacing`` degrees, bilinear, ``dem_sigma`` weight, re-linearised with its slope every
+    iteration); held to the perturbed a-priori heights with 15 m (:func:`block_table`).
+
+    With free heights a common offset of the tie heights and a cross-track shift of a strip
+    without control produce the same parallaxes, so that strip is held only by its weak priors;
+    the DEM removes the ambiguity.  Measured (seeds 7, 8, 9, defaults): check RMS free 428 / 313 /
+    253 m, DEM 102 / 78 / 77 m; model error alone free 424 / 311 / 243 m, DEM 86 / 59 / 45 m.
+
+    Returns
+    -------
+    dict
+        For ``name`` in ``free``, ``dem``, ``apriori``: ``name`` (check RMS, m),
+        ``name_model`` (the true check points mono-plotted from their true image positions:
+        the adjusted models' error alone, as :func:`edge_table`), ``name_converged``,
+        ``name_sigma0``, ``name_iterations``, ``name_tie_height_rms`` (m, adjusted tie heights
+        against the truth); ``dem_interpolation_rms`` (the DEM's own error at the ties).
+    """
+    truths, grid_p, check_p, ties_extra, obs = block_setup(seed=seed, strips=strips, frames=frames,
+                                                            tie_per_overlap=tie_per_overlap, size=size,
+                                                            terrain=mountain_terrain, altitude=altitude)
+    seen = np.array([np.unique(obs.frame[obs.point == i]).size for i in grid_p.id])
+    sel = np.zeros(len(grid_p), dtype=bool)
+    if control_strips is None:
+        sel[spread_subset(grid_p, total)] = True
+    else:  # control only in the first strips: the others hang on the ties
+        last = np.array([obs.frame[obs.point == i].max() if np.any(obs.point == i) else -1 for i in grid_p.id])
+        cand = np.flatnonzero((last >= 0) & (last < control_strips * frames))
+        sel[cand[spread_subset(grid_p.subset(cand), min(total, cand.size))]] = True
+    control = grid_p.subset(sel)
+    ties = GroundPoints.concatenate([as_ties(grid_p.subset(~sel & (seen >= 2))), ties_extra])
+    ground = GroundPoints.concatenate([control, ties])
+    lat, lon, _ = ecef_to_geodetic(*np.concatenate([ground.xyz, check_p.xyz]).T)
+    lat, lon = np.rad2deg(lat), np.rad2deg(lon)
+    dem = DEM.from_function(mountain_terrain, (lat.min() - 0.05, lat.max() + 0.05),
+                            (lon.min() - 0.05, lon.max() + 0.05), dem_spacing, dem_sigma)
+    tie = ground.role == "tie"
+    tlat, tlon, th = ecef_to_geodetic(ground.true_X[tie], ground.true_Y[tie], ground.true_Z[tie])
+    dem_rms = float(np.sqrt(np.mean((dem.height(np.rad2deg(tlat), np.rad2deg(tlon))[0] - th) ** 2)))
+    out = {"control": len(control), "ties": int(tie.sum()), "dem_interpolation_rms": dem_rms}
+    exact_check = GroundPoints(id=check_p.id, X=check_p.true_X, Y=check_p.true_Y, Z=check_p.true_Z, role=check_p.role,
+                               true_X=check_p.true_X, true_Y=check_p.true_Y, true_Z=check_p.true_Z, sigma=check_p.sigma)
+    exact_obs = truth_observations(obs)
+    for name, sigma, use_dem in (("free", None, False), ("dem", None, True), ("apriori", 15.0, False)):
+        fr = [collinearity_frame(t) for t in truths]
+        problem, _ = build_problem(fr, ground, obs, tie_height_sigma=sigma)
+        if sigma is None:  # free: no prior at all (build_problem would keep the points' own sigmas)
+            problem.ground_weight[tie] = 0.0
+        if use_dem:
+            problem.dem, problem.dem_points = dem, np.flatnonzero(tie)
+        res = adjust(problem, DEM_OPTIONS)
+        out[name] = check_errors(fr, res.params, check_p, obs).rms()
+        out[f"{name}_model"] = check_errors(fr, res.params, exact_check, exact_obs).rms()
+        out[f"{name}_converged"] = res.converged
+        out[f"{name}_sigma0"] = res.sigma0
+        _, _, h = ecef_to_geodetic(*res.ground[tie].T)
+        ok = res.point_valid[tie]
+        out[f"{name}_tie_height_rms"] = float(np.sqrt(np.mean((h[ok] - th[ok]) ** 2)))
+        out[f"{name}_iterations"] = res.iterations
     return out

@@ -15,9 +15,9 @@ Each model also carries ``param_steps`` (central-difference step per
 parameter; a natural scale for each parameter that moves the image by roughly
 0.01 px) and ``ground_step`` (metres).  Models without analytic Jacobians use
 the private :func:`_central_difference` helper, vectorised over points and
-looping only over the parameters and the three ground coordinates (the line
-scanner differentiates implicitly at the solved acquisition time, with
-central-difference partial derivatives).
+looping only over the parameters and the three ground coordinates.  The line
+scanner's Jacobians are exact (forward-mode jets and implicit differentiation
+at the solved acquisition time, :mod:`geocoder.adjust.linescanner_jacobian`).
 
 Models
 ------
@@ -45,6 +45,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from geocoder.simulate.satellite import LineScanner, ecef_to_geodetic, geodetic_to_ecef
+
+from .linescanner_jacobian import line_scanner_jacobians
+from .linescanner_projection import project_with_times
 
 __all__ = [
     "RPC",
@@ -446,33 +449,33 @@ class LineScannerModel:
     free : ndarray of bool, shape (32,)
         The mask.
     param_steps : ndarray, shape (n_params,)
-        Central-difference steps of the free parameters, each moving the
-        image by roughly 0.003-0.03 px: 10 m for ``a``; 1e-7 for ``e`` and
-        the orbit angles; ``1e-5 line_time`` for ``line_time``;
-        ``0.01 line_time`` for ``t0``; for coefficient ``k`` of the
-        deviations ``1 m / T^k`` along and across track, ``10 m / T^k``
-        radially, ``1e-6 rad / T^k`` for roll and pitch and
-        ``3e-5 rad / T^k`` for yaw, with ``T`` the largest ``|t|`` over the
-        frame.  Also a natural scale for parameter normalisation in the
-        solver.
+        Natural scales of the free parameters, each moving the image by
+        roughly 0.003-0.03 px: 10 m for ``a``; 1e-7 for ``e`` and the orbit
+        angles; ``1e-5 line_time`` for ``line_time``; ``0.01 line_time`` for
+        ``t0``; for coefficient ``k`` of the deviations ``1 m / T^k`` along
+        and across track, ``10 m / T^k`` radially, ``1e-6 rad / T^k`` for
+        roll and pitch and ``3e-5 rad / T^k`` for yaw, with ``T`` the largest
+        ``|t|`` over the frame.  Central-difference steps for checks, and a
+        scale for parameter normalisation.
     ground_step : float
-        Ground step for the numeric ground Jacobian (m).
-    time_step : float
-        Time step of the derivative of the image and the along-track ratio
-        with respect to the acquisition time in :meth:`jacobians`, as a
-        fraction of ``line_time`` (default 0.1: rounding noise grows below
-        ~0.01, truncation by the cubic deviations above ~1).
+        Ground step of numeric checks of the ground Jacobian (m).
 
     Notes
     -----
-    Each :meth:`project` builds a :class:`LineScanner` and calls
-    ``ground_to_image`` once over all points.  :meth:`jacobians` makes one
-    such call and then differentiates implicitly at the solved time: the
-    ``2 n_params + 8`` central-difference evaluations of the geometry are
-    at fixed times, without the Newton search (~10x faster than
-    differencing :meth:`project`).  The Jacobians agree with central
+    Each :meth:`project` builds a :class:`LineScanner` and solves the
+    acquisition times of all points at once with the iteration of
+    ``ground_to_image`` (:func:`geocoder.adjust.linescanner_projection.project_with_times`,
+    which agrees with it to ~1e-10 px), starting from the previous call's times
+    when the points are the same ones moved a little.  The last projection is
+    kept, so :meth:`jacobians` at the same parameters and points (the solver's
+    pattern: residuals, then linearisation) does not solve again.
+    :meth:`jacobians` is exact: forward-mode jets through the orbit,
+    deviation and attitude geometry at the solved time, and the implicit
+    function theorem for the time
+    (:mod:`geocoder.adjust.linescanner_jacobian`).  It agrees with central
     differences of :meth:`project` (whose ``ground_to_image`` converges to
-    ~1e-10 rows) to ~5e-8 of each column's largest entry.
+    ~1e-10 rows) to ~3e-8 of each column's largest entry, the noise of the
+    differences, and costs about as much as one :meth:`project`.
 
     For a circular orbit (``e = 0``) ``arg_perigee`` and ``mean_anomaly0``
     enter only through their sum, and the orbit/time parameters are strongly
@@ -499,7 +502,7 @@ class LineScannerModel:
         self.n_params = int(mask.sum())
         self.param_steps = self._full_steps()[mask]
         self.ground_step = 1.0
-        self.time_step = 0.1
+        self._last: tuple[np.ndarray, LineScanner, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def __repr__(self) -> str:
         return f"LineScannerModel(n_params={self.n_params}, rows={self.template.rows}, cols={self.template.cols})"
@@ -637,6 +640,28 @@ class LineScannerModel:
             tr = tr - col * sc.col_time
         return np.stack([col, tr / sc.orbit.line_time, v[:, 0] / v[:, 2]], axis=-1)
 
+    def _solved(self, params: ArrayLike, ground: ArrayLike) -> tuple[LineScanner, np.ndarray, np.ndarray, np.ndarray]:
+        """Scanner, image coordinates, ground and acquisition times of a projection.
+
+        The solver projects every frame's points (residuals) and then asks for the Jacobians at
+        the same parameters and points, so the last result is kept (compared by value, so never
+        stale).  A new projection of the same number of points, none moved by more than 10 km,
+        starts its time search from the last times (the next iteration of an adjustment).
+        """
+        p = _as_params(params, self.n_params)
+        g = _as_ground(ground)
+        last = self._last
+        same_set = last is not None and last[2].shape == g.shape
+        if same_set and np.array_equal(last[0], p) and np.array_equal(last[2], g):
+            return last[1], last[3], last[2], last[4]
+        t_start = None
+        if same_set and g.size and float(np.max(np.abs(g - last[2]))) < 1e4:
+            t_start = last[4]
+        sc = self.scanner(p)
+        xy, t = project_with_times(sc, g, t_start)
+        self._last = (p.copy(), sc, g.copy(), xy, t)
+        return sc, xy, g, t
+
     def project(self, params: ArrayLike, ground: ArrayLike) -> np.ndarray:
         """Image coordinates of ECEF ground points.
 
@@ -650,28 +675,25 @@ class LineScannerModel:
         Returns
         -------
         ndarray, shape (m, 2)
-            ``(x, y) = (col, row)`` of ``LineScanner.ground_to_image``; NaN
-            where it does not converge or the point is behind the sensor.
+            ``(x, y) = (col, row)`` as ``LineScanner.ground_to_image`` (to its
+            1e-8-row tolerance; :mod:`geocoder.adjust.linescanner_projection`);
+            NaN where it does not converge or the point is behind the sensor.
         """
-        return self._image(self.scanner(params), _as_ground(ground))
+        return self._solved(params, ground)[1].copy()
 
     def jacobians(self, params: ArrayLike, ground: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-        """Jacobians by implicit differentiation at the solved acquisition time.
+        """Exact Jacobians by forward-mode differentiation and the implicit acquisition time.
 
-        The image point is solved once (:meth:`project`) and its time
-        ``t* = time(row, col)`` recovered.  With ``(col, row, F)(t, q)`` the
-        image and the along-track collinearity ratio ``F = x_s / z_s`` at a
-        *fixed* time (:meth:`_image_at_time`; ``F(t*, q) = 0`` defines
-        ``t*(q)``), the implicit function theorem gives::
+        The image point is solved once (:meth:`project`; reused when it was the last call) and
+        its time ``t* = time(row, col)`` recovered.  The geometry at the fixed time ``t*`` is
+        then evaluated with jets (:func:`geocoder.adjust.linescanner_jacobian.line_scanner_jacobians`):
+        with ``F = x_s / z_s`` the along-track collinearity ratio (``F(t*, q) = 0`` defines
+        ``t*(q)``)::
 
             d(col, row) / dq = d(col, row)/dq|_t - d(col, row)/dt * (dF/dq|_t) / (dF/dt)
 
-        for every parameter or ground coordinate ``q``.  The partial
-        derivatives are central differences at ``t*`` (steps
-        :attr:`param_steps`, :attr:`ground_step` and :attr:`time_step`
-        ``* line_time``), so a Jacobian costs ``2 n_params + 8`` evaluations
-        of the sensor geometry at fixed times instead of ``2 n_params + 6``
-        Newton solves of ``ground_to_image``.
+        for every parameter or ground coordinate ``q``, all points at once (no per-point Python,
+        no numerical differences).
 
         Parameters
         ----------
@@ -688,26 +710,18 @@ class LineScannerModel:
             ``d(x, y) / d(X, Y, Z)``; NaN rows where :meth:`project` is NaN.
         """
         p = _as_params(params, self.n_params)
-        g = _as_ground(ground)
+        sc, xy, g, t = self._solved(p, ground)
         m = g.shape[0]
         Jp = np.full((m, 2, self.n_params), np.nan)
         Jg = np.full((m, 2, 3), np.nan)
-        sc = self.scanner(p)
-        xy = self._image(sc, g)
         ok = np.all(np.isfinite(xy), axis=1)
         if not ok.any():
             return Jp, Jg
-        g = g[ok]
-        t = sc.time(xy[ok, 1], xy[ok, 0])  # inverts the row formula of ground_to_image
-        # partial derivatives of (col, row, F) at fixed time, shape (m, 3, k)
-        d_t = _central_difference(
-            lambda tt: self._image_at_time(sc, tt[:, 0], g), t[:, None], self.time_step * sc.orbit.line_time
-        )[:, :, 0]
-        d_p = _central_difference(lambda q: self._image_at_time(self.scanner(q), t, g), p, self.param_steps)
-        d_g = _central_difference(lambda gg: self._image_at_time(sc, t, gg), g, np.full(3, self.ground_step))
-        dt_dF = (d_t[:, :2] / d_t[:, 2:])[:, :, None]  # d(col, row)/dt / (dF/dt)
-        Jp[ok] = d_p[:, :2] - dt_dF * d_p[:, 2:]
-        Jg[ok] = d_g[:, :2] - dt_dF * d_g[:, 2:]
+        t = t[ok]
+        e_sign = -1.0 if self.full_parameters(p)[1] < 0 else 1.0
+        jp32, jg = line_scanner_jacobians(sc, t, g[ok], e_sign=e_sign)
+        Jp[ok] = jp32[:, :, self.free]
+        Jg[ok] = jg
         return Jp, Jg
 
 

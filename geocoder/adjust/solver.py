@@ -37,6 +37,7 @@ import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ..kernels.robust import weight_exp, weight_l1
+from .dem import DEM
 
 try:  # optional, faster and symmetric
     from sksparse.cholmod import cholesky as _cholmod_cholesky  # type: ignore[import-not-found]
@@ -219,6 +220,15 @@ class Problem:
         Observed image coordinates ``(x=col, y=row)``.
     obs_weight : ndarray, shape (M, 2, 2)
         Full weight matrices; may be rank deficient (edge points) and are never inverted.
+    dem : DEM, optional
+        A terrain model (:class:`geocoder.adjust.dem.DEM`): the heights of ``dem_points`` are
+        held to its bilinear height with its ``sigma`` (seed 000 sec. 2.5).  The constraint
+        ``h(P) - H(lat, lon) = 0`` is re-linearised at every iteration, slope included, and
+        replaces those points' ``ground_prior`` / ``ground_weight`` (a point outside the DEM
+        keeps them).
+    dem_points : ndarray, optional
+        Indices (or a boolean mask) of the points held to ``dem``; default all points without
+        a prior weight (the tie points).
     """
 
     frames: list[Frame]
@@ -229,6 +239,8 @@ class Problem:
     obs_point: np.ndarray
     obs_xy: np.ndarray
     obs_weight: np.ndarray
+    dem: DEM | None = None
+    dem_points: np.ndarray | None = None
 
 
 @dataclass
@@ -241,7 +253,20 @@ class AdjustOptions:
         Gauss-Newton iterations per adjustment (each robust or snooping round re-adjusts).
     tol : float
         Convergence when every correction is below ``tol`` times the parameter's conditional
-        standard deviation (``|dx_i| sqrt(N_ii) < tol``), or the cost no longer decreases.
+        standard deviation (``|dx_i| sqrt(N_ii) < tol``; an absolute test in units of the
+        precision).
+    rtol : float
+        Relative convergence (MINPACK's ``ftol`` test, scale-free and model-independent):
+        converged when both the actual and the predicted relative reduction of the weighted
+        square sum ``Omega`` by an accepted step are at most ``rtol``::
+
+            |Omega - Omega_new| <= rtol Omega   and   Omega - Omega_lin <= rtol Omega
+
+        with ``Omega_lin`` the square sum of the linearised residuals ``v - A dx``.  The
+        predicted reduction keeps a short step from passing for convergence; a
+        Levenberg-Marquardt step damped by ``lambda`` is held to ``rtol / (1 + lambda)``.  Set well above the rounding noise of ``Omega`` (~1e-13
+        relative for a million observations) and below the change a useful step makes;
+        0 disables it.
     damping : float
         Initial Levenberg-Marquardt ``lambda``: ``S + lambda diag(S)`` is solved, ``lambda`` is
         multiplied by 10 when the cost increases (the step is rejected) and divided by 10
@@ -266,6 +291,7 @@ class AdjustOptions:
 
     max_iter: int = 20
     tol: float = 1e-6
+    rtol: float = 1e-10
     damping: float = 0.0
     robust: bool = False
     robust_l1_iterations: int = 3
@@ -296,6 +322,9 @@ class AdjustResult:
     iterations : int
         Gauss-Newton steps of the final adjustment.
     converged : bool
+    convergence : str
+        Which test ended the iterations: ``"step"`` (``tol``), ``"relative"`` (``rtol``) or
+        ``""`` when ``max_iter`` was reached first.
     obs_active : ndarray of bool, shape (M,)
         False for observations rejected by robust weighting or snooping.
     obs_robust_weight : ndarray, shape (M,)
@@ -344,6 +373,7 @@ class AdjustResult:
     total_redundancy: float = 0.0
     pseudo_redundancy: float | None = None
     n_snooped: int = 0
+    convergence: str = ""
 
 
 # --------------------------------------------------------------------------------------------
@@ -467,6 +497,31 @@ class _Layout:
     ground_weight: np.ndarray
     ground_rank: np.ndarray
     prior_rank: int
+    dem: DEM | None = None
+    dem_idx: np.ndarray | None = None  # points held to the DEM
+    dem_prior0: np.ndarray | None = None  # their own prior, kept where the DEM has no height
+    dem_weight0: np.ndarray | None = None
+
+
+def _hold_to_dem(lay: _Layout, ground: np.ndarray) -> None:
+    """Re-linearise the DEM height constraint of ``lay.dem_idx`` at ``ground`` (in place).
+
+    ``c(P) + g . dP = 0`` with weight ``1 / sigma^2`` is written as the ground pseudo-observation
+    ``(prior - P)^T W (prior - P)`` with ``W = g g^T / sigma^2`` and ``prior = P - g c / |g|^2``:
+    the same normal-equation terms, and ``c^2 / sigma^2`` in the cost.
+    """
+    if lay.dem is None or lay.dem_idx is None or lay.dem_idx.size == 0:
+        return
+    k = lay.dem_idx
+    c, g = lay.dem.constraint(ground[k])
+    ok = np.isfinite(c) & np.all(np.isfinite(g), axis=1)
+    c, g = np.where(ok, c, 0.0), np.where(ok[:, None], g, 0.0)
+    gg = np.maximum(np.einsum("pi,pi->p", g, g), np.finfo(float).tiny)
+    w = g[:, :, None] * g[:, None, :] / lay.dem.sigma**2
+    prior = ground[k] - g * (c / gg)[:, None]
+    lay.ground_weight[k] = np.where(ok[:, None, None], w, lay.dem_weight0)
+    lay.ground_prior[k] = np.where(ok[:, None], prior, lay.dem_prior0)
+    lay.ground_rank[k] = np.where(ok, 1, _ranks(lay.dem_weight0))
 
 
 def _layout(problem: Problem) -> _Layout:
@@ -501,7 +556,16 @@ def _layout(problem: Problem) -> _Layout:
     ar = np.arange(nmax)
     idx = np.where(ar[None, :] < nfree[:, None], offs[:, None] + ar[None, :], -1)
     ow = np.asarray(problem.obs_weight, np.float64)[order]
-    gw = np.asarray(problem.ground_weight, np.float64)
+    gw = np.array(problem.ground_weight, np.float64)  # copies: the DEM constraint updates rows
+    gp = np.array(problem.ground_prior, np.float64)
+    dem_idx = None
+    if problem.dem is not None:
+        sel = problem.dem_points
+        if sel is None:
+            dem_idx = np.flatnonzero(~np.any(gw != 0, axis=(1, 2)))
+        else:
+            sel = np.asarray(sel)
+            dem_idx = np.flatnonzero(sel) if sel.dtype == bool else np.unique(sel.astype(np.int64))
     return _Layout(
         n_frames=nf,
         n_points=npt,
@@ -518,10 +582,14 @@ def _layout(problem: Problem) -> _Layout:
         n_unknowns=int(nfree.sum()),
         prior_w=prior_w,
         prior_val=prior_val,
-        ground_prior=np.asarray(problem.ground_prior, np.float64),
+        ground_prior=gp,
         ground_weight=gw,
         ground_rank=_ranks(gw),
         prior_rank=prior_rank,
+        dem=problem.dem,
+        dem_idx=dem_idx,
+        dem_prior0=None if dem_idx is None else gp[dem_idx].copy(),
+        dem_weight0=None if dem_idx is None else gw[dem_idx].copy(),
     )
 
 
@@ -778,6 +846,29 @@ class _State:
     iterations: int = 0
     converged: bool = False
     solver: str = "splu"
+    convergence: str = ""
+
+
+def _relative_converged(
+    lay: _Layout,
+    lin: _Lin,
+    nrm: _Normals,
+    dpad: np.ndarray,
+    dg: np.ndarray,
+    new_params: list[np.ndarray],
+    new_ground: np.ndarray,
+    cost: float,
+    new_cost: float,
+    rtol: float,
+) -> bool:
+    """MINPACK-style test: actual and predicted relative reductions of the cost both <= rtol."""
+    if not abs(cost - new_cost) <= rtol * cost:
+        return False
+    step_img = np.einsum("min,mn->mi", lin.jp, dpad[lay.obs_frame])
+    step_img += np.einsum("mij,mj->mi", lin.jg, dg[lay.obs_point])
+    lin_res = np.where(nrm.used[:, None], lin.res - step_img, 0.0)  # unused rows may hold NaN
+    lin_cost = _cost(lay, lin_res, nrm.w, new_params, new_ground, nrm.valid)
+    return cost - lin_cost <= rtol * cost
 
 
 def _gauss_newton(
@@ -789,6 +880,7 @@ def _gauss_newton(
     opt: AdjustOptions,
     times: list[float],
 ) -> _State:
+    _hold_to_dem(lay, ground)
     lin = _linearise(lay, models, params, ground)
     nrm = _normals(lay, lin, factor, params, ground)
     cost = _cost(lay, lin.res, nrm.w, params, ground, nrm.valid)
@@ -816,19 +908,33 @@ def _gauss_newton(
             new_params.append(p)
         new_ground = ground + dg
         new_res = _residuals(lay, models, new_params, new_ground)
+        _hold_to_dem(lay, new_ground)  # the DEM misclosure at the new points enters the cost
         new_cost = _cost(lay, new_res, nrm.w, new_params, new_ground, nrm.valid)
         state.iterations = it + 1
-        if lam > 0 and new_cost > cost:
-            lam *= 10.0
+        if lam > 0 and not new_cost <= cost:  # NaN (a point lost by a wild step) counts as worse
+            # a rejected step that is already negligible: the cost is at its minimum (to rounding)
+            at_minimum = (
+                opt.rtol > 0
+                and np.isfinite(new_cost)
+                and _relative_converged(lay, lin, nrm, dpad, dg, new_params, new_ground, cost, new_cost, opt.rtol)
+            )
+            _hold_to_dem(lay, ground)
             times.append(time.perf_counter() - t0)
+            if at_minimum:
+                state.converged, state.convergence = True, "relative"
+                break
+            lam *= 10.0
             continue
+        lam_used = lam
         if lam > 0:
             lam /= 10.0
         step = max(
             float(np.max(np.abs(dp) * np.sqrt(np.abs(nrm.s.diagonal())), initial=0.0)),
             float(np.max(np.abs(dg) * np.sqrt(np.abs(nrm.ngg_diag)), initial=0.0)),
         )
-        small_change = abs(cost - new_cost) <= 1e-14 * max(cost, 1e-300)
+        relative = opt.rtol > 0 and _relative_converged(
+            lay, lin, nrm, dpad, dg, new_params, new_ground, cost, new_cost, opt.rtol / (1.0 + lam_used)
+        )
         solver = state.solver
         del nrm, lin, state  # keep one set of normal equations in memory
         params, ground = new_params, new_ground
@@ -837,8 +943,9 @@ def _gauss_newton(
         cost = _cost(lay, lin.res, nrm.w, params, ground, nrm.valid)
         state = _State(params, ground, lin, nrm, it + 1, False, solver)
         times.append(time.perf_counter() - t0)
-        if step < opt.tol or small_change:
+        if step < opt.tol or relative:
             state.converged = True
+            state.convergence = "step" if step < opt.tol else "relative"
             break
     return state
 
@@ -1103,6 +1210,7 @@ def adjust(problem: Problem, options: AdjustOptions | None = None) -> AdjustResu
         sigma0=stats.sigma0,
         iterations=st.iterations,
         converged=st.converged,
+        convergence=st.convergence,
         obs_active=back(active),
         obs_robust_weight=back(rweight),
         redundancy=back(stats.redundancy) if full else None,
