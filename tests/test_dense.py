@@ -93,9 +93,10 @@ def test_dense_accuracy_coverage_calibration(shared_data, tmp_path, client, whic
 
 def test_dense_does_not_depend_on_tiling(shared_data, tmp_path, client):
     files = real_pair(shared_data, tmp_path, which="s2", size=1024, seed=22, turbulence=(1.0, 3.0))
-    runs = {t: register(files.base, files.distorted, tile=t, client=client) for t in (256, 512, 1024)}
-    ref = runs[512]
-    for t in (1024, 256):
+    # one tile (no halo exchange at all) against 16 tiles of 256 (the most exchange)
+    runs = {t: register(files.base, files.distorted, tile=t, client=client) for t in (256, 1024)}
+    ref = runs[1024]
+    for t in (256,):
         other = runs[t]
         same = (other.status.values == ref.status.values).mean()
         both = (other.status.values == Status.MATCHED) & (ref.status.values == Status.MATCHED)
