@@ -3,10 +3,13 @@ written as GeoTIFFs) and comparisons of output stores."""
 
 from __future__ import annotations
 
+import json
+
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import zarr
 import xarray as xr
 from affine import Affine
 from conftest import read_band
@@ -89,3 +92,26 @@ def assert_identical(a: dict, b: dict) -> None:
     for k in a:
         assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, k
         assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), f"{k} differs"
+
+
+def legacy_codec_copy(src, dst: Path) -> Path:
+    """Copy a store (a path, or an open group: one level of a store), arrays gzip-compressed and the array-to-bytes codec named ``endian``.
+
+    GDAL up to at least 3.10 knows the v3 draft's name ``endian`` (the v3.0 spec renamed it
+    ``bytes``) and no ``zstd``; the copy differs from ``src`` in those two names only, so GDAL
+    reads the attributes and coordinate arrays geocoder wrote.
+    """
+    source = src if isinstance(src, zarr.Group) else zarr.open_group(src, mode="r")
+    target = zarr.open_group(dst, mode="w", zarr_format=3, attributes=source.attrs.asdict())
+    for name, array in source.arrays():
+        copy = target.create_array(name, shape=array.shape, dtype=array.dtype, chunks=array.chunks,
+                                   dimension_names=array.metadata.dimension_names, attributes=array.attrs.asdict(),
+                                   compressors=zarr.codecs.GzipCodec(), fill_value=array.fill_value)
+        copy[...] = array[...]
+    for meta in dst.rglob("zarr.json"):
+        doc = json.loads(meta.read_text())
+        for codec in doc.get("codecs", []):
+            if codec["name"] == "bytes":
+                codec["name"] = "endian"
+        meta.write_text(json.dumps(doc))
+    return dst

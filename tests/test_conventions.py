@@ -16,7 +16,7 @@ import rasterio
 import rioxarray
 import xarray as xr
 import zarr
-from pairs import real_pair
+from pairs import legacy_codec_copy, real_pair
 
 from geocoder import Status, ingest, register
 from geocoder.conventions import GRID_MAPPING, pixel_centres
@@ -152,29 +152,6 @@ def _gdal_sees_the_base_georeference(location: str, base: dict):
     return da
 
 
-def _legacy_codec_copy(src: Path, dst: Path) -> Path:
-    """Copy a store, arrays gzip-compressed and the array-to-bytes codec named ``endian``.
-
-    GDAL up to at least 3.10 knows the v3 draft's name ``endian`` (the v3.0 spec renamed it
-    ``bytes``) and no ``zstd``; the copy differs from ``src`` in those two names only, so GDAL
-    reads the attributes and coordinate arrays geocoder wrote.
-    """
-    source = zarr.open_group(src, mode="r")
-    target = zarr.open_group(dst, mode="w", zarr_format=3, attributes=source.attrs.asdict())
-    for name, array in source.arrays():
-        copy = target.create_array(name, shape=array.shape, dtype=array.dtype, chunks=array.chunks,
-                                   dimension_names=array.metadata.dimension_names, attributes=array.attrs.asdict(),
-                                   compressors=zarr.codecs.GzipCodec(), fill_value=array.fill_value)
-        copy[...] = array[...]
-    for meta in dst.rglob("zarr.json"):
-        doc = json.loads(meta.read_text())
-        for codec in doc.get("codecs", []):
-            if codec["name"] == "bytes":
-                codec["name"] = "endian"
-        meta.write_text(json.dumps(doc))
-    return dst
-
-
 @pytest.mark.parametrize("name,variable", [("register", "registered"), ("register", "status"), ("scene", "image")])
 def test_gdal_reads_the_georeference_attributes(stores, name, variable, tmp_path):
     """What GDAL's Zarr driver takes from geocoder's attributes: CRS from ``_CRS``, transform from x/y.
@@ -184,7 +161,7 @@ def test_gdal_reads_the_georeference_attributes(stores, name, variable, tmp_path
     """
     if not _has_zarr_driver():
         pytest.skip(f"GDAL {rasterio.__gdal_version__} has no Zarr driver")
-    copy = _legacy_codec_copy(Path(stores[name]), tmp_path / "copy.zarr")
+    copy = legacy_codec_copy(Path(stores[name]), tmp_path / "copy.zarr")
     da = _gdal_sees_the_base_georeference(f'ZARR:"{copy}":/{variable}', stores["base"])
     expected = xr.open_zarr(stores[name], consolidated=False)[variable].values
     np.testing.assert_array_equal(da.values.reshape(expected.shape), expected)

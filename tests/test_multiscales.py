@@ -20,7 +20,7 @@ import rasterio
 import xarray as xr
 import zarr
 from affine import Affine
-from pairs import real_pair
+from pairs import legacy_codec_copy, real_pair
 
 from geocoder import register
 from geocoder.cog import to_cog
@@ -297,23 +297,6 @@ def _gdal_can_read_copies() -> bool:
         return "Zarr" in env.drivers()
 
 
-def _legacy_copy(src_group, dst: Path) -> Path:
-    """The arrays of one group, gzip-compressed and with the codec name GDAL <= 3.10 knows (``endian``)."""
-    target = zarr.open_group(dst, mode="w", zarr_format=3, attributes=src_group.attrs.asdict())
-    for name, array in src_group.arrays():
-        copy = target.create_array(name, shape=array.shape, dtype=array.dtype, chunks=array.chunks,
-                                   dimension_names=array.metadata.dimension_names, attributes=array.attrs.asdict(),
-                                   compressors=zarr.codecs.GzipCodec(), fill_value=array.fill_value)
-        copy[...] = array[...]
-    for meta in dst.rglob("zarr.json"):
-        doc = json.loads(meta.read_text())
-        for codec in doc.get("codecs", []):
-            if codec["name"] == "bytes":
-                codec["name"] = "endian"
-        meta.write_text(json.dumps(doc))
-    return dst
-
-
 @pytest.mark.data
 def test_register_writes_levels(shared_data, tmp_path, client):
     files = real_pair(shared_data, tmp_path, which="s2", size=256, seed=3)
@@ -335,7 +318,7 @@ def test_register_writes_levels(shared_data, tmp_path, client):
     assert "tiepoints" in zarr.open_group(out, mode="r") and "tiepoints" not in zarr.open_group(out, path="1", mode="r")
     if not _gdal_can_read_copies():
         return
-    copy = _legacy_copy(zarr.open_group(out, path="1", mode="r"), tmp_path / "level1.zarr")
+    copy = legacy_codec_copy(zarr.open_group(out, path="1", mode="r"), tmp_path / "level1.zarr")
     with rasterio.open(f'ZARR:"{copy}":/dx') as f:
         assert f.crs == crs and f.transform.almost_equals(transform * Affine.scale(2), precision=1e-9)
         np.testing.assert_array_equal(f.read(1), level.dx.values)
