@@ -8,7 +8,7 @@ import pytest
 from geocoder.quality.postfilter import PostFilterOptions, halo, postfilter, postfilter_reference
 from geocoder.status import Status
 
-OUT, OK, FILLED, BLUNDER, NOTEX, MODEL = (np.uint8(s) for s in Status)
+OUT, OK, FILLED, BLUNDER, NOTEX, MODEL = (np.uint8(s) for s in (Status.OUTSIDE, Status.MATCHED, Status.FILLED, Status.BLUNDER, Status.NO_TEXTURE, Status.MODEL))
 
 
 def _smooth(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
