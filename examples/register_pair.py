@@ -227,7 +227,7 @@ im = axes[0].imshow(sigma, cmap="magma", vmin=0, vmax=np.nanpercentile(sigma, 99
 axes[0].set_title("hypot(sigma_x, sigma_y) [px]")
 fig.colorbar(im, ax=axes[0], shrink=0.8)
 codes = sorted(legend.values())
-cmap = ListedColormap(["black", "tab:green", "tab:cyan", "tab:red", "tab:gray", "tab:orange"][: len(codes)])
+cmap = ListedColormap(["black", "tab:green", "tab:cyan", "tab:red", "tab:gray", "tab:orange", "tab:olive"][: len(codes)])
 norm = BoundaryNorm(np.arange(len(codes) + 1) - 0.5, cmap.N)
 im = axes[1].imshow(status, cmap=cmap, norm=norm, interpolation="nearest")
 cbar = fig.colorbar(im, ax=axes[1], shrink=0.8, ticks=codes)
