@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import re
 import sys
 import time
 
@@ -49,6 +50,23 @@ def _friendly(fn):
     return wrapper
 
 
+#: The group's options that a user may also give after the subcommand (``geocoder demo -q``).
+_ANYWHERE = re.compile(r"^(-q|--quiet|--verbose|-v+)$")
+
+
+def _group_options_first(args: list[str], group: click.Group) -> list[str]:
+    """``args`` with ``-q``/``-v`` given after the subcommand moved before it (up to a ``--``)."""
+    at = next((i for i, a in enumerate(args) if a in group.commands), None)
+    if at is None:
+        return args
+    end = args.index("--") if "--" in args[at:] else len(args)
+    moved = [a for a in args[at + 1 : end] if _ANYWHERE.match(a)]
+    if not moved:
+        return args
+    rest = [a for a in args[at + 1 : end] if not _ANYWHERE.match(a)]
+    return [*args[:at], *moved, args[at], *rest, *args[end:]]
+
+
 class _Main(click.Group):
     """The ``geocoder`` group: every failure ends as one line ``geocoder: error: ...`` and an exit code.
 
@@ -57,6 +75,7 @@ class _Main(click.Group):
     """
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        args = _group_options_first(list(sys.argv[1:] if args is None else args), self)
         try:
             rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         except click.exceptions.UsageError as exc:

@@ -68,6 +68,26 @@ def test_demo_reports_error_against_truth(tmp_path, client):
 
 
 @pytest.mark.data
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_quiet_and_verbose_before_or_after_the_subcommand(tmp_path, client, where):
+    """``geocoder -q register ...`` and ``geocoder register ... -q`` are the same command (issue 16)."""
+    write_synthetic_pair(tmp_path, 256, seed=5, max_displacement=4)
+    common = ("--no-dense", "--tile", 128, "--scheduler", client.scheduler.address)
+
+    def register(out, *flags):
+        args = ["register", tmp_path / "base.tif", tmp_path / "dist.tif", "--out", tmp_path / out, *common]
+        return run(*flags, *args) if where == "before" else run(*args, *flags)
+
+    loud, quiet, verbose = register("loud.zarr"), register("quiet.zarr", "-q"), register("verbose.zarr", "-v")
+    for r in (loud, quiet, verbose):
+        assert r.returncode == 0, r.stderr
+    assert "tiles" in loud.stderr, "progress is shown by default"
+    assert "tiles" not in quiet.stderr, "-q: no progress"
+    assert len(verbose.stderr.splitlines()) > len(loud.stderr.splitlines()), "-v: the stages' log lines too"
+    r = run("register", tmp_path / "base.tif", tmp_path / "dist.tif", "--out", tmp_path / "x.zarr", *common, "--", "-q")
+    assert r.returncode == 2, "after --, -q is an argument, not the option"
+
+
 def test_ingest_command(shared_data, tmp_path, client):
     out = tmp_path / "rgb.zarr"
     r = run("ingest", shared_data / "landsat7_rasterio/RGB.byte.tif", out, "--tile", 256, "--scheduler", client.scheduler.address)
