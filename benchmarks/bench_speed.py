@@ -26,7 +26,7 @@ seconds per stage. ``--repeat N`` times each geocoder configuration N times in i
 and shows the fastest run.
 
 Run:  pip install -e ".[bench]"
-      python benchmarks/bench_speed.py [--size 2048] [--workers 1,2] [--skip-dense] [--skip-peers] [--field]
+      python benchmarks/bench_speed.py [--size 2048] [--workers 1,2] [--skip-dense] [--skip-peers] [--full-growth]
                                        [--before-rev fff9652] [--repeat 3]
 """
 
@@ -116,9 +116,9 @@ def _child(args) -> None:
     from geocoder.pipeline.register import RegisterOptions
 
     work = Path(args.child)
-    dense = args.dense in ("yes", "field")
-    # the opt-in lattice + every-pixel least squares (geocoder.match.densify)
-    options = RegisterOptions(matching=DenseOptions(col_step=16, halo=16, densify="field")) if args.dense == "field" else None
+    dense = args.dense in ("yes", "full")
+    # the opt-in region growing of every pixel (the default grows a lattice, then matches every pixel at once)
+    options = RegisterOptions(matching=DenseOptions(col_step=1, halo=4)) if args.dense == "full" else None
     t0 = time.perf_counter()
     with local_cluster(args.nworkers) as cluster, Client(cluster) as client:
         t_cluster = time.perf_counter() - t0
@@ -206,8 +206,8 @@ def main() -> None:
     ap.add_argument("--workers", default="1,2", help="local worker counts, comma separated")
     ap.add_argument("--skip-dense", action="store_true", help="no geocoder dense rows (the slow ones)")
     ap.add_argument("--skip-peers", action="store_true", help="no OpenCV / scikit-image rows")
-    ap.add_argument("--field", action="store_true",
-                    help="also the opt-in dense mode: lattice every 16th column + every pixel by window-sum least squares")
+    ap.add_argument("--full-growth", action="store_true",
+                    help="also the opt-in dense mode: region growing of every pixel (DenseOptions(col_step=1))")
     ap.add_argument("--before-rev", default=None, help="also run the geocoder rows with this git revision's code")
     ap.add_argument("--repeat", type=int, default=1, help="timed geocoder runs per configuration (the fastest is shown)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -245,15 +245,15 @@ def main() -> None:
                     continue
                 peers[name] = (t, metrics(fx, fy, np.ones_like(overlap), pair, overlap))
         modes = ([("dense", True)] if not args.skip_dense else []) + [("--no-dense", False)]
-        if args.field:
-            modes.insert(0, ("dense lattice 16 + field", "field"))
+        if args.full_growth:
+            modes.insert(0, ("dense, full region growing", "full"))
         for tree, path in trees:
             for mode, dense in modes:
                 for n in workers:
                     label = f"geocoder {mode}, {n} worker{'s' if n > 1 else ''}, {tree}"
                     print(f"running {label} ...", file=sys.stderr, flush=True)
-                    if dense == "field" and path is not None:
-                        continue  # the before tree has no such mode
+                    if dense == "full" and path is not None:
+                        continue  # the before tree's default
                     info = run_geocoder(work, label, dense=dense, nworkers=n, pythonpath=path, repeat=args.repeat)
                     if path is not None and not all(m.startswith(path) for m in [info["module"], *info["worker_modules"]]):
                         raise SystemExit(f"{label}: geocoder imported from {info['module']} / {info['worker_modules']}, not {path}")

@@ -110,9 +110,11 @@ def test_dense_does_not_depend_on_tiling(shared_data, tmp_path, client):
     err = np.hypot(ref.dx.values - truth.dx, ref.dy.values - truth.dy)
     est, inside = st == Status.ESTIMATED, st != Status.OUTSIDE
     print("estimated", est.mean(), np.sqrt(np.mean(err[est] ** 2)), "all", np.sqrt(np.mean(err[inside] ** 2)))
-    assert est.mean() > 0.1  # measured 21 % of the base (no_texture 31 % -> 9 %)
-    assert np.sqrt(np.mean(err[est] ** 2)) <= 0.08 and (err[est] > 1.0).sum() == 0  # measured 0.041 px, 0
-    assert np.sqrt(np.mean(err[inside] ** 2)) <= 0.35  # measured 0.275 px; the polynomial there: 0.481
+    # measured 9.7 % of the base with the lattice + field default (21 % with full growth, which
+    # matched 11 points less of it), at 0.036 px (0.041)
+    assert est.mean() > 0.05
+    assert np.sqrt(np.mean(err[est] ** 2)) <= 0.08 and (err[est] > 1.0).sum() == 0
+    assert np.sqrt(np.mean(err[inside] ** 2)) <= 0.35  # measured 0.274 px; the polynomial there: 0.481
     assert (ref.sigma_x.values[est] >= np.abs(ref.dx.values - truth.dx)[est].mean()).mean() > 0.5
 
 

@@ -40,11 +40,12 @@ def _errors(res, tx, ty, region=REGION):
     return res.x - tx[sl], res.y - ty[sl]
 
 
-def test_every_pixel_against_truth_and_alsc(case):
+@pytest.mark.parametrize("gradients", ["template", "image"])
+def test_every_pixel_against_truth_and_alsc(case, gradients):
     """As accurate as ALSC on the same pixels from the same starts, and sigma calibrated."""
     pair, tx, ty, x0, y0 = case
     base, dist = pair.base[0], pair.distorted[0]
-    res = field_lsq(base, dist, x0, y0, np.ones((SIZE, SIZE), bool), REGION)
+    res = field_lsq(base, dist, x0, y0, np.ones((SIZE, SIZE), bool), REGION, gradients=gradients)
     ex, ey = _errors(res, tx, ty)
     ok = res.code == 0
     assert ok.mean() > 0.5
@@ -66,6 +67,7 @@ def test_every_pixel_against_truth_and_alsc(case):
     assert both.mean() > 0.4
     e_alsc = np.hypot(ref.x - tx[rows, cols], ref.y - ty[rows, cols])[both]
     e_field = np.hypot(ex, ey)[rows - REGION[0], cols - REGION[2]][both]
+    print(gradients, "field", np.sqrt(np.mean(e_field**2)), "alsc", np.sqrt(np.mean(e_alsc**2)))
     assert np.sqrt(np.mean(e_field**2)) <= 1.05 * np.sqrt(np.mean(e_alsc**2))
 
 
@@ -86,25 +88,39 @@ def test_kernel_solution_equals_design_matrix_reference(case):
     qx, qy = 3.7, -1.2  # any reference: the centring is exact
     region = np.array(REGION, dtype=np.int64)
     fieldlsq._solve_window(t, iw, gx, gy, gx, gy, x0, y0, qx, qy, np.ones((h, w), bool), region, 25, 3, 1.0,
-                           True, sol, stats)
+                           True, False, sol, stats)
     for r, c in [(40, 90), (100, 150), (279, 229), (200, 100)]:
         ref = template_solution_reference(t, iw, gx, gy, x0, y0, r, c, 25, 3)
         np.testing.assert_allclose(sol[:, r, c], ref, rtol=1e-6, atol=1e-9)
+    # the template's gradients: the design [g_T, u g_T, v g_T, I, 1] regressing T, no centring
+    tgy, tgx = np.gradient(t)
+    fieldlsq._solve_window(t, iw, tgx, tgy, iw, iw, x0, y0, 0.0, 0.0, np.ones((h, w), bool), region, 25, 3, 1.0,
+                           True, True, sol, stats)
+    v, u = (a.ravel().astype(float) for a in np.mgrid[-3:4, -25:26])
+    for r, c in [(40, 90), (100, 150), (279, 229), (200, 100)]:
+        sl = (slice(r - 3, r + 4), slice(c - 25, c + 26))
+        gxs, gys, ts, ivs = (a[sl].ravel() for a in (tgx, tgy, t, iw))
+        a = np.column_stack([gxs, gys, u * gxs, v * gxs, u * gys, v * gys, ivs, np.ones_like(ts)])
+        theta = np.linalg.lstsq(a, ts, rcond=None)[0]
+        np.testing.assert_allclose(sol[:, r, c], theta, rtol=1e-6, atol=1e-9)
 
 
-def test_result_depends_only_on_its_halo(case):
-    """After n rounds a pixel depends on starts within n template half-sizes only: a window cut
-    to that halo gives the same result (what makes the dense field independent of the tiling)."""
+@pytest.mark.parametrize("gradients, reach", [("template", 2), ("image", 1)])
+def test_result_depends_only_on_its_halo(case, gradients, reach):
+    """After n rounds a pixel depends on starts within n template half-sizes only (2n with the
+    template's gradients: the box mean, then the template): a window cut to that halo gives the
+    same result (what makes the dense field independent of the tiling)."""
     pair, tx, ty, x0, y0 = case
     base, dist = pair.base[0], pair.distorted[0]
-    n = 3
+    n = 2
     core = (120, 180, 130, 190)
-    res = field_lsq(base, dist, x0, y0, np.ones((SIZE, SIZE), bool), core, iterations=n)
-    r0, r1, c0, c1 = core[0] - n * 3 - 3, core[1] + n * 3 + 3, core[2] - n * 25 - 25, core[3] + n * 25 + 25
+    res = field_lsq(base, dist, x0, y0, np.ones((SIZE, SIZE), bool), core, iterations=n, gradients=gradients)
+    k = reach * n
+    r0, r1, c0, c1 = core[0] - k * 3 - 1, core[1] + k * 3 + 1, core[2] - k * 25 - 1, core[3] + k * 25 + 1
     sub = (slice(r0, r1), slice(c0, c1))
     # the distorted window is the same array; only the base window and the starts are cut
     cut = field_lsq(base[sub], dist, x0[sub], y0[sub], np.ones((r1 - r0, c1 - c0), bool),
-                    (core[0] - r0, core[1] - r0, core[2] - c0, core[3] - c0), iterations=n)
+                    (core[0] - r0, core[1] - r0, core[2] - c0, core[3] - c0), iterations=n, gradients=gradients)
     assert (cut.code == res.code).all()
     ok = res.code == 0
     assert ok.mean() > 0.5
@@ -113,14 +129,15 @@ def test_result_depends_only_on_its_halo(case):
     np.testing.assert_allclose(cut.y[ok], res.y[ok], atol=1e-6)
 
 
-def test_untrusted_pixels_are_not_matched_nor_used(case):
+@pytest.mark.parametrize("gradients", ["template", "image"])
+def test_untrusted_pixels_are_not_matched_nor_used(case, gradients):
     pair, tx, ty, x0, y0 = case
     eligible = np.ones((SIZE, SIZE), bool)
     eligible[150:160, 150:250] = False
     bad_x = x0.copy()
     bad_x[150:160, 150:250] += 5.0  # wrong starts that must not enter any template
-    res = field_lsq(pair.base[0], pair.distorted[0], bad_x, y0, eligible, REGION)
-    ref = field_lsq(pair.base[0], pair.distorted[0], x0, y0, eligible, REGION)
+    res = field_lsq(pair.base[0], pair.distorted[0], bad_x, y0, eligible, REGION, gradients=gradients)
+    ref = field_lsq(pair.base[0], pair.distorted[0], x0, y0, eligible, REGION, gradients=gradients)
     hole = (slice(150 - REGION[0], 160 - REGION[0]), slice(150 - REGION[2], 230 - REGION[2]))
     assert (res.code[hole] == -1).all()
     np.testing.assert_array_equal(res.code, ref.code)

@@ -33,10 +33,22 @@ The window sums ``sum u^a v^b f`` (``a + b <= 2``) come from prefix sums along e
 (moments about the centre from those of the column index) and a direct sum over the
 ``2 ry + 1`` rows, kept in a ring buffer of rows, so memory is a few rows per channel.
 
+That is ``gradients="image"``. The default, ``gradients="template"``, takes the design's
+slopes from the base template (its central differences: fixed, and free of the resampled
+image's noise, which the interpolant's slopes carry into the design and which biases their
+fixed point on smooth texture) and needs no linearisation about each centre: every round
+averages the field over the template's box, resamples the image at that smooth field, solves
+
+    T(x) ~ alpha I(x + qbar(x)) + beta + gx_T (sx + c11 u + c12 v) + gy_T (sy + c21 u + c22 v)
+
+(the template's move in its own grey values: no division by the gain) and moves the pixel to
+``qbar(p) + (sx, sy)``. A pixel's own noise so never feeds back except through the box mean;
+the fixed point's remaining noise gain (1.16 for 51 x 7) is folded into sigma.
+
 Dependencies are local: after ``n`` iterations a pixel depends on ``d0`` within ``n`` template
-half-sizes of it (and on the images one template further), so a tile computed with that
-halo gives the same result for any tiling. Exit codes are those of
-:class:`geocoder.kernels.alsc.Exit`, decided in the same order.
+half-sizes of it (``2 n`` with the template's gradients: the box, then the template), and on
+the images one template further, so a tile computed with that halo gives the same result for
+any tiling. Exit codes are those of :class:`geocoder.kernels.alsc.Exit`, decided in the same order.
 """
 
 from __future__ import annotations
@@ -46,6 +58,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from scipy.ndimage import uniform_filter
 
 from .alsc import Exit
 
@@ -147,7 +160,7 @@ def _add2(pre, q, j, v, x):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
-def _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, c0, c1, rx, nplanes, pre,
+def _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, c0, c1, rx, nplanes, centre, pre,
                 out):  # pragma: no cover - compiled
     """Horizontal window sums of row ``r`` for centres ``c0 + rx .. c1 - rx - 1`` into ``out`` (planes, cols).
 
@@ -168,8 +181,8 @@ def _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, c0, c1, rx
         rv = iw[r, c]
         gx = gxw[r, c]
         gy = gyw[r, c]
-        iv = rv - gx * (px[r, c] - c - qx) - gy * (py[r, c] - r - qy)
-        ok = weight[r, c] and (tv - tv == 0.0) and (iv - iv == 0.0)
+        iv = rv - gx * (px[r, c] - c - qx) - gy * (py[r, c] - r - qy) if centre else rv
+        ok = weight[r, c] and (tv - tv == 0.0) and (iv - iv == 0.0) and (gx - gx == 0.0) and (gy - gy == 0.0)
         if not ok:
             for k in range(nplanes):
                 pre[k, j + 1] = pre[k, j]
@@ -539,8 +552,8 @@ def _precision_sums(vsum, rc, j, s):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
-def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx, ry, min_count, final, sol,
-                  stats):  # pragma: no cover - compiled
+def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx, ry, min_count, final, template,
+                  sol, stats):  # pragma: no cover - compiled
     """Solve the normal equations of every template centred in ``region``.
 
     ``sol`` (8, h, w) gets ``(dx, dy, b11, b12, b21, b22, gain, offset)``: the move of the
@@ -555,7 +568,7 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
     a1 = min(c1 + rx, w)
     ncols = a1 - a0
     nring = 2 * ry + 1
-    nplanes = _NPLANES if final else _NPLANES_SOLVE
+    nplanes = _NPLANES if final and not template else _NPLANES_SOLVE
     ring = np.zeros((nring, nplanes, ncols))
     vsum = np.zeros((3, nplanes, ncols))
     pre = np.empty((nplanes, ncols + 1))
@@ -573,7 +586,8 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
         if r - base_row >= nring:  # the row leaving the window
             _add_row(vsum, ring[slot], -1.0, float(r - nring - base_row), ncols, nplanes)
         if 0 <= r < h:
-            _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, a0, a1, rx, nplanes, pre, ring[slot])
+            _row_planes(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, r, a0, a1, rx, nplanes, not template, pre,
+                        ring[slot])
         else:
             ring[slot, :, :] = 0.0
         _add_row(vsum, ring[slot], 1.0, float(r - base_row), ncols, nplanes)
@@ -592,8 +606,11 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
             cnt = s[41]
             if cnt < min_count * npix or cnt <= 8.0:
                 continue
-            _assemble(s, px[rc, c] - c - qx, py[rc, c] - rc - qy, nmat, rhs)
-            ok, _, _, _ = _ldl_solve8(nmat, rhs, p, final)
+            if template:
+                _assemble(s, 0.0, 0.0, nmat, rhs)
+            else:
+                _assemble(s, px[rc, c] - c - qx, py[rc, c] - rc - qy, nmat, rhs)
+            ok, d6, d7, lxy = _ldl_solve8(nmat, rhs, p, final)
             if not ok:
                 stats[4, rc, c] = _SINGULAR
                 continue
@@ -601,21 +618,33 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
             if not (alpha > 0.0):
                 stats[4, rc, c] = _SINGULAR
                 continue
-            sol[0, rc, c] = p[_P0] / alpha
-            sol[1, rc, c] = p[_P1] / alpha
+            # the geometric unknowns: the template's move (template gradients) or alpha times the image's
+            scale = 1.0 if template else alpha
+            sol[0, rc, c] = p[_P0] / scale
+            sol[1, rc, c] = p[_P1] / scale
             sol[6, rc, c] = alpha
             sol[7, rc, c] = p[_P7]
             stats[4, rc, c] = _ACCEPTED
             if not final:
                 continue
-            sol[2, rc, c] = p[_P2] / alpha
-            sol[3, rc, c] = p[_P3] / alpha
-            sol[4, rc, c] = p[_P4] / alpha
-            sol[5, rc, c] = p[_P5] / alpha
+            sol[2, rc, c] = p[_P2] / scale
+            sol[3, rc, c] = p[_P3] / scale
+            sol[4, rc, c] = p[_P4] / scale
+            sol[5, rc, c] = p[_P5] / scale
             ssr = s[36]
             for k in range(8):
                 ssr -= p[k] * rhs[k]
-            s02 = max(ssr, 0.0) / (cnt - 8.0) / (alpha * alpha)
+            s02 = max(ssr, 0.0) / (cnt - 8.0) / (scale * scale)
+            if template:
+                # the template's smooth gradients are the design: the shift block of its own inverse
+                stats[0, rc, c] = math.sqrt(max(s02 * (1.0 / d6 + lxy * lxy / d7), 0.0))
+                stats[1, rc, c] = math.sqrt(max(s02 / d7, 0.0))
+                stats[2, rc, c] = -s02 * lxy / d7
+                st, stt, sti, si, sii = s[37], s[36], s[42], s[43], s[44]
+                vt = stt - st * st / cnt
+                vi = sii - si * si / cnt
+                stats[3, rc, c] = (sti - st * si / cnt) / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
+                continue
             # the precision from the normal matrix of the smooth gradients, as in ALSC: the
             # slopes of the interpolant carry twice the noise and would make sigma optimistic
             _precision_sums(vsum, rrel, j, s2)
@@ -739,6 +768,7 @@ def field_lsq(
     max_sigma: float = 0.1,
     min_det: float = 0.5,
     min_fill: float = 0.5,
+    gradients: str = "template",
 ) -> FieldLsqResult:
     """Least-squares match of every eligible pixel of ``region``, starting from ``(x0, y0)``.
 
@@ -770,6 +800,15 @@ def field_lsq(
     min_fill : float
         Smallest share of a template's pixels that must be eligible (with finite samples);
         the others are left out of its sums.
+    gradients : {"template", "image"}
+        The design's slopes. ``"template"``: the base template's central differences (the
+        inverse-compositional form: free of the resampled image's noise, which biases the
+        image's slopes on smooth texture); each round samples the image on the field
+        smoothed over the template's box and moves a pixel to that mean plus its template's
+        shift, so a round reaches two half-sizes, and sigma carries the fixed point's noise
+        gain (:func:`_noise_gain`). ``"image"``: the slopes of the distorted image's
+        interpolant at every template pixel's own position, each template linearised about
+        its centre (one half-size per round).
 
     Returns
     -------
@@ -777,6 +816,9 @@ def field_lsq(
     """
     if iterations < 1:
         raise ValueError(f"iterations must be >= 1, got {iterations}")
+    if gradients not in ("image", "template"):
+        raise ValueError(f"gradients must be 'image' or 'template', got {gradients!r}")
+    template = gradients == "template"
     h, w = base.shape
     t = np.asarray(base, dtype=np.float64)
     # grey values of O(1) keep the window sums well conditioned (gain and offset absorb the scale)
@@ -802,7 +844,12 @@ def field_lsq(
     stats = np.full((5, h, w), np.nan)
     step = np.full((h, w), np.inf)
     r0, r1, c0, c1 = region
-    for it in range(iterations):
+    if template:
+        _template_rounds(t, d, px, py, weight, region, radius, radius_y, iterations, min_fill, iw, gxw, gyw, sol, stats,
+                         step)
+        stats[0:2] *= _noise_gain(radius, radius_y)
+        stats[2] *= _noise_gain(radius, radius_y) ** 2
+    for it in range(0 if template else iterations):
         grow = iterations - 1 - it
         reg = np.array([max(r0 - grow * radius_y, 0), min(r1 + grow * radius_y, h),
                         max(c0 - grow * radius, 0), min(c1 + grow * radius, w)], dtype=np.int64)
@@ -814,7 +861,7 @@ def field_lsq(
             _sample(cgx, px, py, warp, cxw)
             _sample(cgy, px, py, warp, cyw)
         _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, reg, radius, radius_y, min_fill, final,
-                      sol, stats)
+                      False, sol, stats)
         _update(sol, stats, px, py, step, reg)
     code = np.full((h, w), _NOT_TRIED, dtype=np.int8)
     x0f = np.asarray(x0, dtype=np.float64)
@@ -828,6 +875,86 @@ def field_lsq(
         px[sl], py[sl], sol[2:6, r0:r1, c0:c1], gain, offset, stats[0][sl], stats[1][sl], stats[3][sl], step[sl],
         code[sl],
     )
+
+
+def _box_mean(q: np.ndarray, weight: np.ndarray, rx: int, ry: int) -> np.ndarray:
+    """Mean of ``q`` over the ``weight`` pixels of the template's box around every pixel (NaN where none)."""
+    size = (2 * ry + 1, 2 * rx + 1)
+    num = uniform_filter(np.where(weight, q, 0.0), size=size, mode="constant")
+    den = uniform_filter(weight.astype(np.float64), size=size, mode="constant")
+    # uniform_filter's running sums leave rounding of ~1e-16 where the box holds no weight
+    return np.where(den > 0.5 / (size[0] * size[1]), num / np.maximum(den, 1e-300), np.nan)
+
+
+def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill, iw, gxw, gyw, sol, stats, step):
+    """The rounds of ``gradients="template"``: smooth the field over the template's box,
+    resample the image there, and move every pixel to the smoothed field plus its template's shift.
+
+    The smoothing is what keeps the templates independent of their neighbours' noise: the
+    samples follow the box mean of the field (whose noise is that of many matches), and the
+    new position of a pixel is that mean plus ITS template's own shift, so no pixel's noise
+    is carried into the next round except through the mean. Round ``k`` of ``n`` solves the
+    pixels within ``2 (n - 1 - k)`` half-sizes of ``region`` (the box, then the template).
+    """
+    h, w = t.shape
+    r0, r1, c0, c1 = region
+    tgy, tgx = np.gradient(t)
+    cols = np.arange(w)[None, :]
+    rows = np.arange(h)[:, None]
+    for it in range(iterations):
+        grow = 2 * (iterations - 1 - it)
+        reg = np.array([max(r0 - grow * ry, 0), min(r1 + grow * ry, h),
+                        max(c0 - grow * rx, 0), min(c1 + grow * rx, w)], dtype=np.int64)
+        warp = np.array([max(reg[0] - ry, 0), min(reg[1] + ry, h), max(reg[2] - rx, 0), min(reg[3] + rx, w)],
+                        dtype=np.int64)
+        sx = cols + _box_mean(px - cols, weight, rx, ry)
+        sy = rows + _box_mean(py - rows, weight, rx, ry)
+        _warp(d, sx, sy, warp, iw, gxw, gyw)
+        _solve_window(t, iw, tgx, tgy, iw, iw, sx, sy, 0.0, 0.0, weight, reg, rx, ry, min_fill, it == iterations - 1,
+                      True, sol, stats)
+        _move(sol, stats, sx, sy, px, py, step, reg)
+
+
+@numba.njit(nogil=True, cache=True)
+def _move(sol, stats, sx, sy, px, py, step, region):  # pragma: no cover - compiled
+    """A solved pixel goes to the smoothed field plus its template's shift; ``step`` is how far it moved."""
+    r0, r1, c0, c1 = region
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            if stats[4, r, c] == _ACCEPTED:
+                nx = sx[r, c] + sol[0, r, c]
+                ny = sy[r, c] + sol[1, r, c]
+                ex = nx - px[r, c]
+                ey = ny - py[r, c]
+                px[r, c] = nx
+                py[r, c] = ny
+                step[r, c] = math.sqrt(ex * ex + ey * ey)
+            else:
+                step[r, c] = np.inf
+
+
+_GAINS: dict[tuple[int, int], float] = {}
+
+
+def _noise_gain(rx: int, ry: int) -> float:
+    """Standard-deviation gain of the template rounds' fixed point over one template's noise.
+
+    At the fixed point ``q = B q + B (t - B q)`` (``B`` the template's box mean) noise that
+    enters as the box-smoothed noise of single matches leaves with the transfer
+    ``1 / (1 - B + B^2)`` (at most 4/3); the gain is the ratio of the two spectra's powers,
+    from the box's transfer function on a 512 x 512 grid.
+    """
+    key = (int(rx), int(ry))
+    if key not in _GAINS:
+        def box(n: int, size: int = 512) -> np.ndarray:
+            k = np.zeros(size)
+            k[:n] = 1.0 / n
+            return np.real(np.fft.fft(np.roll(k, -(n // 2))))
+
+        b = box(2 * key[1] + 1)[:, None] * box(2 * key[0] + 1)[None, :]
+        p = b * b
+        _GAINS[key] = float(np.sqrt((p / (1.0 - b + b * b) ** 2).sum() / p.sum()))
+    return _GAINS[key]
 
 
 def _location_scale(a: np.ndarray) -> tuple[float, float]:

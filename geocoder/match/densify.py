@@ -104,10 +104,11 @@ def densify_window(
     iterations: int,
     tol: float,
     min_fill: float = 0.5,
+    gradients: str = "template",
 ) -> FieldLsqResult:
     """Match every started pixel of ``region`` (see :func:`geocoder.kernels.fieldlsq.field_lsq`)."""
     return field_lsq(
         base, dist, x0, y0, started, region, radius=options.radius, radius_y=options.ry,
         iterations=iterations, tol=tol, max_shift=options.max_shift, min_rho=options.min_rho,
-        max_sigma=options.max_sigma, min_det=options.min_det, min_fill=min_fill,
+        max_sigma=options.max_sigma, min_det=options.min_det, min_fill=min_fill, gradients=gradients,
     )

@@ -55,15 +55,12 @@ class DenseOptions:
     step : lattice spacing of the matches (1 = every pixel).
     col_step : with ``step = 1``: the region growing (full Gauss-Newton matches, halo exchange)
         runs on every row but only on every ``col_step``-th column (global lattice; the halo
-        must be at least ``col_step``); after the last round one pass per tile matches the
-        pixels between (``densify``). 1 (default) = the region growing of every pixel.
-        Opt-in ``col_step=16, halo=16`` (with ``densify="field"``), measured in one run on the
-        2048^2 S2 bench pair (bench_speed.py --field): 3.3x faster end to end (the dense stage
-        4.9x), the same RMSE on matched pixels (0.120 px), but 3-4 points less coverage of the
-        overlap; on the tests' real crops equal or better RMSE and no unflagged pixel off by
-        more than 1 px (113 with full growth on the 1024^2 S2 pair); on the demo's smooth
-        synthetic texture less accurate (0.087 against 0.065 px), which is why it is not the
-        default.
+        must be at least ``col_step``); after the last round one pass per tile matches every
+        pixel (``densify``). 1 = the region growing of every pixel (the seed's method as such,
+        4-5x slower in the dense stage). Default 16: on the tests' real crops (S2 1024^2,
+        aerial 512^2) and the demo's synthetic texture it is as accurate as full growth or
+        better, covers more of the textured overlap and gives a better calibrated sigma
+        (figures in the notes of issue 12).
     fill_step_tol : largest ``(x, y)`` step (px) accepted after the one step of a pixel filled
         by ``densify="step"``.
     densify : how the pixels between the lattice columns are matched when ``col_step > 1``:
@@ -72,6 +69,10 @@ class DenseOptions:
         :mod:`geocoder.match.densify`) or ``"step"`` (one verified Gauss-Newton step per
         pixel from its two lattice neighbours; :mod:`geocoder.match.fill`).
     densify_iterations : resampling rounds of ``"field"``.
+    densify_gradients : the design of ``"field"`` (see :func:`geocoder.kernels.fieldlsq.field_lsq`):
+        ``"template"`` (default; the base template's gradients, samples on the field smoothed
+        over the template) or ``"image"`` (the resampled image's slopes, each template
+        linearised about its own centre; biased by the noise of the slopes on smooth texture).
     densify_tol : largest last move (px) of a pixel accepted by ``"field"``.
     densify_gap, densify_extend : how far (px) ``"field"`` interpolates the lattice along a
         scan line between two matches, and extends it past the last one, for the starts.
@@ -82,12 +83,13 @@ class DenseOptions:
     """
 
     alsc: AlscOptions = field(default_factory=lambda: AlscOptions(radius=25, radius_y=3, max_shift=0.5, max_sigma=0.1, tol=2e-4, max_iter=30))
-    halo: int = 4
+    halo: int = 16
     step: int = 1
-    col_step: int = 1
+    col_step: int = 16
     fill_step_tol: float = 0.05
     densify: str = "field"
-    densify_iterations: int = 3
+    densify_iterations: int = 2
+    densify_gradients: str = "template"
     densify_tol: float = 0.1
     densify_gap: int = 128
     densify_extend: int = 32
@@ -109,6 +111,8 @@ class DenseOptions:
             raise ValueError(f"densify must be 'field' or 'step', got {self.densify!r}")
         if int(self.densify_iterations) != self.densify_iterations or self.densify_iterations < 1:
             raise ValueError(f"densify_iterations must be a positive integer, got {self.densify_iterations!r}")
+        if self.densify_gradients not in ("image", "template"):
+            raise ValueError(f"densify_gradients must be 'image' or 'template', got {self.densify_gradients!r}")
         if not self.densify_tol > 0:
             raise ValueError(f"densify_tol must be positive, got {self.densify_tol!r}")
         if self.densify_gap < 0 or self.densify_extend < 0:
@@ -356,8 +360,11 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     h, w = shape
     k, n = opts.col_step, opts.densify_iterations
     rx, ry = opts.alsc.radius, opts.alsc.ry
-    br0, br1 = max(tile.row0 - n * ry, 0), min(tile.row1 + n * ry, h)
-    bc0, bc1 = max(tile.col0 - n * rx, 0), min(tile.col1 + n * rx, w)
+    # every round reaches one template half-size further (two with the template's gradients), plus
+    # a pixel for the template's central differences
+    reach_rounds = n * (2 if opts.densify_gradients == "template" else 1)
+    br0, br1 = max(tile.row0 - reach_rounds * ry - 1, 0), min(tile.row1 + reach_rounds * ry + 1, h)
+    bc0, bc1 = max(tile.col0 - reach_rounds * rx - 1, 0), min(tile.col1 + reach_rounds * rx + 1, w)
     reach = max(opts.densify_gap, opts.densify_extend)
     sc0, sc1 = max(bc0 - reach, 0), min(bc1 + reach, w)
     f, scode = _read_state(state, slots, grid, br0, br1, sc0, sc1, fields=_START_FIELDS)
@@ -375,7 +382,7 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     dist = dist_reader.read(*dwin)[dist_band]
     region = (tile.row0 - br0, tile.row1 - br0, tile.col0 - bc0, tile.col1 - bc0)
     res = densify_window(base, dist, x0 - dc0, y0 - dr0, started, region, options=opts.alsc,
-                         iterations=n, tol=opts.densify_tol)
+                         iterations=n, tol=opts.densify_tol, gradients=opts.densify_gradients)
     out = np.empty((NFIELDS, *res.code.shape), dtype=np.float32)  # every field is set below
     out[0] = res.x + dc0 - np.arange(tile.col0, tile.col1)[None, :]
     out[1] = res.y + dr0 - np.arange(tile.row0, tile.row1)[:, None]
