@@ -21,7 +21,7 @@ stored at the start of every round and each tile's result when it finishes.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import dask
 import dask.array as da
@@ -68,6 +68,10 @@ class DenseOptions:
         distorted image resampled at the lattice's interpolation along the lines;
         :mod:`geocoder.match.densify`) or ``"step"`` (one verified Gauss-Newton step per
         pixel from its two lattice neighbours; :mod:`geocoder.match.fill`).
+    lattice_tol : convergence threshold (px) of the lattice's matches when ``col_step > 1``
+        (instead of ``alsc.tol``): they only start and seed the every-pixel pass, which matches
+        every pixel again and decides the output. 0.01 px against 2e-4 halved the growth's CPU
+        time at the same result on the tests' crops (issue 12's notes).
     densify_iterations : resampling rounds of ``"field"``.
     densify_gradients : the design of ``"field"`` (see :func:`geocoder.kernels.fieldlsq.field_lsq`):
         ``"template"`` (default; the base template's gradients, samples on the field smoothed
@@ -88,6 +92,7 @@ class DenseOptions:
     col_step: int = 16
     fill_step_tol: float = 0.05
     densify: str = "field"
+    lattice_tol: float = 0.01
     densify_iterations: int = 2
     densify_gradients: str = "template"
     densify_tol: float = 0.1
@@ -98,7 +103,14 @@ class DenseOptions:
     max_rounds: int = 12
     margin: int = 24
 
+    @property
+    def growth_alsc(self) -> AlscOptions:
+        """The least-squares matching options of the region growing (``lattice_tol`` on a lattice)."""
+        return replace(self.alsc, tol=self.lattice_tol) if self.col_step > 1 else self.alsc
+
     def __post_init__(self) -> None:
+        if not self.lattice_tol > 0:
+            raise ValueError(f"lattice_tol must be positive, got {self.lattice_tol!r}")
         if int(self.col_step) != self.col_step or self.col_step < 1:
             raise ValueError(f"col_step must be a positive integer, got {self.col_step!r}")
         if self.col_step > 1 and self.step != 1:
@@ -210,7 +222,7 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     local[:, 2] -= dc0
     local[:, 3] -= dr0
     region = (rr0 - wr0, rr1 - wr0, rc0 - wc0, rc1 - wc0)
-    new = grow_window(base, dist, grad, local, params, code, region, options=opts.alsc, step=opts.step,
+    new = grow_window(base, dist, grad, local, params, code, region, options=opts.growth_alsc, step=opts.step,
                       lattice_origin=(-wr0 % opts.step, -wc0 % (opts.step * opts.col_step)), neighbours=opts.neighbours,
                       max_tries=opts.max_tries, col_step=opts.col_step)
     if new == 0:
