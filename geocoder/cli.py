@@ -250,17 +250,22 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
 @click.option("--control-scenes", default=None,
               help="Comma-separated 0-based scenes whose reference matches are control points (default all; the rest are placed by tie points).")
 @click.option("--feather", default=8.0, show_default=True, type=click.FloatRange(min=0), help="Blend width across seams, in output pixels.")
+@click.option("--seams", "seam_mode", default="least-cost", show_default=True, type=click.Choice(["least-cost", "centre"]),
+              help="Seamlines: nearest each scene's centre, or moved from there onto the cut of least grey-value difference.")
 @click.option("--resampling", default="bilinear", show_default=True, type=click.Choice(["nearest", "bilinear", "cubic", "lanczos"]))
 @click.option("--balance/--no-balance", default=True, show_default=True,
               help="Radiometric balance: a gain and offset per scene and band from the grey values at control and tie points.")
 @click.option("--cog", default=None, help="Also write the mosaic as a Cloud-Optimized GeoTIFF (tile-parallel, with overviews).")
 @click.option("--dense/--no-dense", default=False, show_default=True,
               help="Refine every control scene pixel by pixel against the reference (scan-line turbulence).")
+@click.option("--report", default=None,
+              help="Also write a report directory: report.md with the overlap graph, adjustment and seams, plus figures.")
 @tile_option
 @overwrite_option
 @scheduler_option
 @_friendly
-def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, balance, cog, dense, tile, overwrite, scheduler):
+def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, resampling, balance, cog, dense, report, tile,
+           overwrite, scheduler):
     """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
     from .mosaic import MosaicSummary
     from .mosaic import mosaic as run
@@ -275,14 +280,26 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, resampling, b
         bad = [k for k in control if not 0 <= k < len(scenes)]
         if bad:
             raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
+    if report is not None:  # refused now, not after the job
+        from .mosaic.report import require_matplotlib
+        from .outputs import check_output
+
+        require_matplotlib()
+        check_output(report, inputs=(*scenes, reference, out, *([cog] if cog else [])), overwrite=overwrite, option="--report")
     t0 = time.perf_counter()
     ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
-             feather=feather, resampling=resampling, balance=balance, scheduler=scheduler, overwrite=overwrite, cog=cog, dense=dense)
+             feather=feather, seams=seam_mode, resampling=resampling, balance=balance, scheduler=scheduler,
+             overwrite=overwrite, cog=cog, dense=dense)
     import json
 
     for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():
         click.echo(line)
     click.echo(f"wrote {out}{f' and {cog}' if cog else ''} in {time.perf_counter() - t0:.1f} s")
+    if report is not None:
+        from .mosaic.report import write_report
+
+        where = write_report(out, report, overwrite=overwrite)
+        click.echo(f"wrote the report {where}/report.md")
 
 
 @main.command()

@@ -9,8 +9,14 @@
    one node with robust re-weighting; scenes tied to no control are reported and left out.
 5. The output grid (the reference's CRS and pixel, the union of the footprints) is written one
    task per tile: each task maps its pixels into every scene through the adjusted models,
-   samples the ORIGINAL scenes once, and blends them with seams nearest each scene's centre,
-   feathered; ``source`` says which scene each pixel comes from.
+   samples the ORIGINAL scenes once, and blends them across seams, feathered; ``source`` says
+   which scene each pixel comes from. The seams are nearest each scene's centre
+   (``seams="centre"``) or, by default, cut on a coarse grid of the output along the least
+   grey-value difference of each overlapping pair (:mod:`geocoder.mosaic.seamplan`, one task per
+   coarse window, then the cut on one node; every output tile reads its window of the label map).
+6. The summary keeps, per scene, the adjustment's residuals (binned) and precision and its
+   footprint, and per pair the seam's length, grey-value step and tie-point mismatch: what
+   :func:`geocoder.mosaic.report.write_report` draws.
 """
 
 from __future__ import annotations
@@ -48,7 +54,9 @@ from ..status import Status
 from ..tiles import TileGrid
 from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
+from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
 from .radiometry import seam_step, solve_balance
+from .seamplan import plan_seams, read_labels
 
 log = logging.getLogger("geocoder")
 
@@ -81,6 +89,31 @@ class MosaicSummary:
         Rows and columns of the mosaic.
     seconds : dict
         Wall time per stage.
+    block : list of int
+        Scene index of every scene in the block (the order of ``rms_px``, ``precision_px``,
+        ``observations``, ``residual_bins``, ``footprints`` and the store's ``source``).
+    precision_px : list of float
+        Per block scene, the RMS standard deviation of its adjusted position over its
+        footprint (scene pixels; NaN when the adjustment gave no covariances).
+    observations : list of int
+        Per block scene, its image observations kept by the robust adjustment.
+    residual_bins : list of list
+        Per block scene, the mean residual of its observations in 3 x 3 cells of the scene:
+        ``[col, row, rx, ry, n]``, the cell's mean position in output pixels, its mean residual
+        in scene pixels and the number of observations.
+    footprints : list of list
+        Per block scene, its outline in output pixels (``[col, row]`` points).
+    seam_mode : str
+        How the seams were drawn: ``"centre"`` or ``"least-cost"``.
+    seams : list of dict
+        Per pair of scenes that meet along a seam: ``i``, ``j`` (scene indices), ``pixels``
+        (its length in pixel edges), ``grey_step`` (RMS difference of the two balanced scenes
+        along it), ``grey_bias``, and ``tie_mismatch_px`` (RMS disagreement of the two at their
+        common tie points after the adjustment, :func:`~geocoder.mosaic.diagnostics.pair_mismatch`).
+    seam_grey_step : float
+        RMS grey-value step along all seams.
+    seam_cells_moved : int
+        Coarse cells the least-cost cut gave another scene than the centre rule.
     """
 
     scenes: list[str]
@@ -94,6 +127,15 @@ class MosaicSummary:
     seam_step: list[float] = field(default_factory=list)
     shape: tuple[int, int] = (0, 0)
     seconds: dict = field(default_factory=dict)
+    block: list[int] = field(default_factory=list)
+    precision_px: list[float] = field(default_factory=list)
+    observations: list[int] = field(default_factory=list)
+    residual_bins: list[list] = field(default_factory=list)
+    footprints: list[list] = field(default_factory=list)
+    seam_mode: str = "centre"
+    seams: list[dict] = field(default_factory=list)
+    seam_grey_step: float = float("nan")
+    seam_cells_moved: int = 0
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -112,6 +154,10 @@ class MosaicSummary:
             + ", ".join(f"{r:.3f}" for r in self.rms_px),
             *([f"radiometric balance: grey-value step at the tie points {self.seam_step[0]:.3g} before, "
                f"{self.seam_step[1]:.3g} after (RMS, all bands)"] if self.seam_step else []),
+            *([f"seams ({self.seam_mode}): grey-value step along the seams {self.seam_grey_step:.3g} (RMS), "
+               f"tie-point mismatch per pair (px) "
+               + ", ".join(f"{p['i']}-{p['j']}: {p.get('tie_mismatch_px', float('nan')):.3f}" for p in self.seams)]
+              if self.seams else []),
             f"mosaic: {self.shape[0]} x {self.shape[1]} px",
             "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
         ]
@@ -123,6 +169,51 @@ def _to_map(mapping_to_ref, transform: Affine):
         return pixel_to_world(transform, rx, ry)
 
     return f
+
+
+def _shifted(to_ref, origin: tuple[int, int]):
+    """Scene pixel -> output pixel, from scene pixel -> reference pixel and the output's origin."""
+    def f(x, y):
+        rx, ry = to_ref(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        return rx - origin[0], ry - origin[1]
+
+    return f
+
+
+def _adjustment_figures(summary: MosaicSummary, problem, result, models: list, shapes: list, to_map: list,
+                        to_out: list) -> None:
+    """Per block scene: precision, observations kept and binned residuals (into ``summary``).
+
+    ``to_map`` and ``to_out``: every scene's pixel -> map and pixel -> output pixel mappings
+    (the bins' positions are output pixels, their residuals scene pixels).
+    """
+    covs = result.param_cov if result.param_cov is not None else [None] * len(models)
+    summary.precision_px, summary.observations, summary.residual_bins = [], [], []
+    for n, ((model, params), shape, f) in enumerate(zip(models, shapes, to_map)):
+        h, w = shape
+        ys, xs = np.meshgrid(np.linspace(0, h - 1, 5), np.linspace(0, w - 1, 5), indexing="ij")
+        ex, ny = f(xs.ravel(), ys.ravel())
+        summary.precision_px.append(scene_precision(model, params, covs[n], np.column_stack([ex, ny, np.zeros(ex.size)])))
+        mine = (problem.obs_frame == n) & result.obs_active
+        summary.observations.append(int(mine.sum()))
+        bins = residual_bins(problem.obs_xy[mine], result.residuals[mine], shape)
+        if bins:
+            cx, cy = to_out[n](np.array([b[0] for b in bins]), np.array([b[1] for b in bins]))
+            bins = [[round(float(x), 2), round(float(y), 2), *b[2:]] for x, y, b in zip(cx, cy, bins)]
+        summary.residual_bins.append(bins)
+
+
+def _seam_figures(summary: MosaicSummary, stats: list[dict], block: list[int], problem, result) -> None:
+    """The seams per pair of scenes (grey step from the tiles, mismatch from the adjustment) into ``summary``."""
+    table = seam_table(stats, block)
+    index = {k: n for n, k in enumerate(block)}
+    keys = [(index[r["i"]], index[r["j"]]) for r in table]
+    mismatch = pair_mismatch(problem.obs_frame, problem.obs_point, result.residuals, result.obs_active, keys)
+    for r, m in zip(table, mismatch):
+        r["tie_mismatch_px"] = m
+    summary.seams = table
+    n = sum(r["pixels"] for r in table)
+    summary.seam_grey_step = float(np.sqrt(sum(r["pixels"] * r["grey_step"] ** 2 for r in table) / n)) if n else float("nan")
 
 
 def _overlap(i_shape, i_to_ref, ref_to_j, j_shape, samples: int = 16) -> float:
@@ -170,23 +261,41 @@ def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int
 
 def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
                  shapes: list, feather_px: float, method: str, balance: np.ndarray, fields: list,
-                 origin: tuple[int, int], boxes: np.ndarray) -> int:
-    """Compute and write one output tile; returns the number of pixels covered.
+                 origin: tuple[int, int], boxes: np.ndarray, seams: dict | None = None,
+                 grid_shape: tuple[int, int] | None = None) -> dict:
+    """Compute and write one output tile; returns the pixels covered and its seam statistics.
 
     Only the scenes whose footprint box (``boxes``: ``row0, row1, col0, col1`` in output
     pixels, with a margin) meets the tile are sampled: time and memory per tile depend on how
     many scenes overlap it, not on the size of the block.
+
+    ``seams``: the coarse label map (:func:`~geocoder.mosaic.seamplan.plan_seams`); without
+    it, the seams are nearest each scene's centre (:func:`~geocoder.mosaic.compose.blend`).
+    The tile is computed with one more row and column (inside the mosaic) so that a seam
+    between this tile's last pixel and the next tile's first is counted here, once.
+
+    Returns
+    -------
+    dict
+        ``covered``: pixels with a source; ``seams``: ``(a, b) -> [n, sum d, sum d^2]`` over
+        the tile's pixels whose right or lower neighbour comes from another scene, ``d`` the
+        difference of the two balanced scenes' grey values (mean of the bands) at the pixel.
     """
     import zarr
 
+    from .seams import label_weights, seam_pairs, upsample_labels
+
     r0, r1, c0, c1 = window
-    near = np.flatnonzero((boxes[:, 0] < r1) & (boxes[:, 1] > r0) & (boxes[:, 2] < c1) & (boxes[:, 3] > c0))
+    H, W = grid_shape if grid_shape is not None else (r1, c1)
+    e1, f1 = min(r1 + 1, H), min(c1 + 1, W)  # one more row and column, for the seams at the tile's edge
+    ext = (r0, e1, c0, f1)
+    near = np.flatnonzero((boxes[:, 0] < e1) & (boxes[:, 1] > r0) & (boxes[:, 2] < f1) & (boxes[:, 3] > c0))
     nb = readers[0].shape[0] if readers else 1
-    values = np.full((near.size, nb, r1 - r0, c1 - c0), np.nan, dtype=np.float32)
-    scores = np.full((near.size, r1 - r0, c1 - c0), np.nan)
+    values = np.full((near.size, nb, e1 - r0, f1 - c0), np.nan, dtype=np.float32)
+    scores = np.full((near.size, e1 - r0, f1 - c0), np.nan)
     for i, k in enumerate(near):
         (model, params), reader, shape = models[k], readers[k], shapes[k]
-        x, y = _scene_xy(model, params, transform, window, fields[k], origin)
+        x, y = _scene_xy(model, params, transform, ext, fields[k], origin)
         s = centre_score(x, y, shape)
         if not np.any(s <= 1.0):
             continue
@@ -196,10 +305,45 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
     mosaic, source, _ = blend(values, scores, feather=feather)
     if near.size:  # blend counts the scenes of this tile; the store names them by block index
         source = np.where(source == NO_SOURCE, NO_SOURCE, near[np.minimum(source, near.size - 1)]).astype(np.uint16)
+    if seams is not None and near.size:
+        halo = math.ceil(feather_px / 2.0) + 2
+        big = (r0 - halo, e1 + halo, c0 - halo, f1 + halo)
+        cells, a0, b0 = read_labels(seams, big)
+        label = upsample_labels(cells, a0, b0, big, seams["factor"], (H, W))
+        weight = label_weights(label, near, feather=feather_px)[:, halo:-halo, halo:-halo]
+        valid = np.all(np.isfinite(values), axis=1) & np.isfinite(scores)
+        weight = np.where(valid, weight, 0.0)
+        total = weight.sum(axis=0)
+        own = label[halo:-halo, halo:-halo]
+        pos = np.searchsorted(near, own)
+        hit = (own != NO_SOURCE) & (near[np.minimum(pos, near.size - 1)] == own)
+        own_valid = hit & np.take_along_axis(valid, np.minimum(pos, near.size - 1)[None], axis=0)[0]
+        use = total > 0  # elsewhere (no label, or the labelled scenes have no data): the centre rule
+        w = np.divide(weight, total, out=np.zeros_like(weight), where=use)
+        labelled = np.einsum("khw,kbhw->bhw", w, np.where(valid[:, None], values, 0.0)).astype(np.float32)
+        mosaic = np.where(use[None], labelled, mosaic)
+        best = near[np.argmax(weight, axis=0)].astype(np.uint16)
+        source = np.where(own_valid, own, np.where(use, best, source)).astype(np.uint16)
+    stats: dict = {}
+    if near.size:
+        rr, cc, a, b = seam_pairs(source, rows=r1 - r0, cols=c1 - c0)
+        if rr.size:
+            index = np.full(int(max(a.max(), b.max(), near.max())) + 1, -1)
+            index[near] = np.arange(near.size)
+            va = values[index[a], :, rr, cc].mean(axis=-1)
+            vb = values[index[b], :, rr, cc].mean(axis=-1)
+            d = va - vb
+            ok = np.isfinite(d)
+            a, b = a.astype(np.int64), b.astype(np.int64)
+            lo, hi = np.minimum(a, b)[ok], np.maximum(a, b)[ok]
+            d = np.where(a[ok] == lo, d[ok], -d[ok])
+            for p in np.unique(lo * 65536 + hi):
+                sel = (lo * 65536 + hi) == p
+                stats[(int(p // 65536), int(p % 65536))] = [int(sel.sum()), float(d[sel].sum()), float((d[sel] ** 2).sum())]
     g = zarr.open_group(store, mode="r+")
-    g["mosaic"][:, r0:r1, c0:c1] = mosaic
-    g["source"][r0:r1, c0:c1] = source
-    return int((source != NO_SOURCE).sum())
+    g["mosaic"][:, r0:r1, c0:c1] = mosaic[:, : r1 - r0, : c1 - c0]
+    g["source"][r0:r1, c0:c1] = source[: r1 - r0, : c1 - c0]
+    return {"covered": int((source[: r1 - r0, : c1 - c0] != NO_SOURCE).sum()), "seams": stats}
 
 
 def mosaic(
@@ -209,8 +353,10 @@ def mosaic(
     out: str | os.PathLike | None = None,
     order: int = 2,
     tile: int | None = None,
+    output_tile: int | None = None,
     control_scenes: list[int] | None = None,
     feather: float = 8.0,
+    seams: str = "least-cost",
     resampling: str = "bilinear",
     balance: bool = True,
     client=None,
@@ -236,11 +382,20 @@ def mosaic(
     tile : int, optional
         Tile of all tile-parallel stages and of the output (a multiple of 64); default
         :func:`geocoder.get_option` ``("tile")`` (512 unless set).
+    output_tile : int, optional
+        Tile (and chunk) of the output grid, default ``tile``. The mosaic's pixels do not
+        depend on it (to rounding): the seams are decided on a coarse grid, not per tile.
     control_scenes : list of int, optional
         Scenes whose reference matches serve as control points (default all); the others
         are placed by tie points only (sparse control).
     feather : float
         Width of the blend across a seam, in output pixels.
+    seams : {"least-cost", "centre"}
+        Where the seams run. ``"centre"``: every pixel from the scene that sees it nearest
+        its centre. ``"least-cost"``: that seam, then moved within a corridor around it onto
+        the cut of least grey-value difference between the two scenes
+        (:mod:`geocoder.mosaic.seams`), decided on a coarse grid of the output (cells of 8
+        output pixels or more) and feathered across the label boundary in every tile.
     resampling : str
         Interpolator of the single resampling of every scene.
     balance : bool
@@ -277,7 +432,13 @@ def mosaic(
         tile = get_option("tile")
     if not 1 <= order <= 3:
         raise ValueError(f"order must be 1, 2 or 3, got {order}")
+    if seams not in ("least-cost", "centre"):
+        raise ValueError(f"seams must be 'least-cost' or 'centre', got {seams!r}")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
+    if output_tile is None:
+        output_tile = tile
+    if output_tile < 16 or output_tile % 16:
+        raise ValueError(f"output_tile must be a multiple of 16, got {output_tile}")
     opts.validate()
     if out is not None:
         out = check_output(out, inputs=(*scenes, reference), overwrite=overwrite)
@@ -289,11 +450,11 @@ def mosaic(
     if len(bands) != 1:
         raise InputError(scenes[0], f"the scenes have different band counts {sorted(bands)}; give scenes with the same bands")
     transform = scene_transform(ref) or Affine.identity()
-    summary = MosaicSummary(scenes=[s.attrs["source"] for s in opened])
+    summary = MosaicSummary(scenes=[s.attrs["source"] for s in opened], seam_mode=seams)
     timer = _Timer(summary)  # type: ignore[arg-type]
     allowed = set(range(len(scenes)) if control_scenes is None else control_scenes)
-    key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile,
-                      control=sorted(allowed), feather=feather, resampling=resampling, balance=balance, dense=dense)
+    key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile, output_tile=output_tile,
+                      control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance, dense=dense)
     job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
             dask_client(client, scheduler) as c:
@@ -373,6 +534,7 @@ def mosaic(
         summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
                           for n in range(len(block))]
         models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
+        summary.block = list(block)
         nbands = opened[0].sizes["band"]
         gains = np.tile([1.0, 0.0], (len(block), nbands, 1))
         if balance:
@@ -382,7 +544,8 @@ def mosaic(
                     [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
                     [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
                     nbands)
-        ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], tile, opened[0].sizes["band"])
+        ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], output_tile,
+                                               opened[0].sizes["band"])
         summary.shape = (ds.sizes["y"], ds.sizes["x"])
         ds.attrs.update(_attrs(summary, block, models, order, gains))
         store = job.file("output.zarr")
@@ -401,11 +564,25 @@ def mosaic(
                     fields[n] = f
         origin = tuple(int(round(v)) for v in ~transform * (out_transform.c, out_transform.f))  # output (0, 0) in reference pixels
         boxes = np.array([_footprint_box(to_ref[k], shapes[k], origin) for k in block])
+        summary.footprints = [footprint_outline(_shifted(to_ref[k], origin), shapes[k]) for k in block]
+        _adjustment_figures(summary, problem, result, models, [shapes[k] for k in block],
+                            [_to_map(to_ref[k], transform) for k in block], [_shifted(to_ref[k], origin) for k in block])
+        grid_shape = (ds.sizes["y"], ds.sizes["x"])
+        plan = None
+        block_pairs = [(index[p["i"]], index[p["j"]]) for p in summary.pairs
+                       if p["i"] in index and p["j"] in index and p["ties"] > 0]
+        if seams == "least-cost":
+            with timer("seams"):
+                plan = plan_seams(job, store, grid_shape, output_tile, out_transform, models, [readers[k] for k in block],
+                                  [shapes[k] for k in block], gains, boxes, block_pairs)
+                summary.seam_cells_moved = plan.pop("changed")
         with timer("mosaic"):
             tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
                 store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
-                [shapes[k] for k in block], feather, resampling, gains, fields, origin, boxes) for t in grid}
-            job.run_tiles("mosaic", tasks, phase="mosaic tiles")
+                [shapes[k] for k in block], feather, resampling, gains, fields, origin, boxes, plan, grid_shape)
+                for t in grid}
+            done = job.run_tiles("mosaic", tasks, phase="mosaic tiles")
+        _seam_figures(summary, [d["seams"] for d in done.values()], block, problem, result)
         import zarr
 
         zarr.open_group(store, mode="r+").attrs.update({
@@ -416,7 +593,7 @@ def mosaic(
         })
         if cog is not None:
             with timer("cog"):
-                to_cog(store, cog, variable="mosaic", client=c, blocksize=tile if tile % 16 == 0 else 512,
+                to_cog(store, cog, variable="mosaic", client=c, blocksize=output_tile,
                        overwrite=overwrite)
         if out is None:
             result_ds = xr.open_zarr(store, decode_coords="all", consolidated=False).load()
