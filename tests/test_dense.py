@@ -12,39 +12,9 @@ import xarray as xr
 from pairs import real_pair
 
 from geocoder import Status, register
+from geocoder.testing import textured_overlap
 
 pytestmark = [pytest.mark.cluster, pytest.mark.data]
-
-
-def textured_overlap(pair, *, rx=25, ry=3, noise=0.02, precision=0.1, margin=2):
-    """Base pixels where a match of the required precision is possible at all.
-
-    The template (``2 rx + 1`` by ``2 ry + 1``) must lie inside both images, and the
-    Cramer-Rao bound of its shift must be below ``precision``: with white noise of
-    ``sigma_n`` in both images the shift covariance is ``2 sigma_n^2 N^-1``
-    (``N = sum grad grad^T`` over the template), so the smallest eigenvalue of N must reach
-    ``2 sigma_n^2 / precision^2``. N is taken from the noisy base with the expected noise
-    part of the gradients (``sigma_n^2 / 2`` per pixel for central differences) removed.
-    """
-    import scipy.ndimage as ndi
-
-    base = pair.base[0].astype(np.float64)
-    lo, hi = np.nanpercentile(base, [1, 99])
-    sn = noise * (hi - lo)
-    h, w = pair.dx.shape
-    hd, wd = pair.distorted.shape[1:]
-    ys, xs = np.mgrid[0:h, 0:w]
-    px, py = xs + pair.dx, ys + pair.dy
-    inside = (px >= rx + margin) & (px < wd - rx - margin) & (py >= ry + margin) & (py < hd - ry - margin)
-    inside &= (xs >= rx + margin) & (xs < w - rx - margin) & (ys >= ry + margin) & (ys < h - ry - margin)
-    gy, gx = np.gradient(base)
-    size = (2 * ry + 1, 2 * rx + 1)
-    n = size[0] * size[1]
-    sxx = ndi.uniform_filter(gx * gx, size) * n - n * sn**2 / 2
-    syy = ndi.uniform_filter(gy * gy, size) * n - n * sn**2 / 2
-    sxy = ndi.uniform_filter(gx * gy, size) * n
-    lam_min = 0.5 * (sxx + syy) - np.sqrt(0.25 * (sxx - syy) ** 2 + sxy**2)
-    return inside & (lam_min >= 2 * sn**2 / precision**2)
 
 
 def dense_figures(ds, pair):

@@ -62,3 +62,66 @@ def test_options_are_checked():
         LineOptions(min_count=0).validate()
     with pytest.raises(ValueError, match="max_gap"):
         LineOptions(max_gap=-1).validate()
+
+
+def test_holes_are_interpolated_between_their_ends_only():
+    """A residual that changes linearly along the line is reproduced across a hole; runs that
+    reach the edge, are longer than max_hole or touch another kind of pixel are left alone."""
+    from geocoder.quality.lines import hole_estimates
+
+    w = 200
+    cols = np.arange(w, dtype=np.float64)
+    rx = np.tile(0.01 * cols, (4, 1))
+    ry = np.tile(-0.02 * cols + 1.0, (4, 1))
+    var = np.full((4, w), 0.01)
+    usable = np.ones((4, w), bool)
+    target = np.zeros((4, w), bool)
+    usable[0, 50:80] = False
+    target[0, 50:80] = True  # a hole of 30: interpolated
+    usable[1, 0:40] = False
+    target[1, 0:40] = True  # reaches the edge: never extrapolated
+    usable[2, 20:180] = False
+    target[2, 20:180] = True  # longer than max_hole
+    usable[3, 60:90] = False
+    target[3, 60:75] = True  # ends on a pixel that is neither usable nor a target
+    var[0, 45:50] = np.nan  # filled pixels carry no sigma: their variance is left out
+    var[0, 42:45] = 0.04
+    cx, cy, nx, ny, ok = hole_estimates(rx, ry, var, var, usable, target, max_hole=128, edge=8)
+    assert ok[0, 50:80].all() and ok.sum() == 30
+    # the ends' means sit 3.5 px outside the hole, so the interpolation is exact only for a
+    # line through them: the mean of 8 samples of a linear function is its value at their middle
+    left, right = 0.01 * (50 - 4.5), 0.01 * (80 + 3.5)
+    t = (np.arange(50, 80) - 49) / 31
+    np.testing.assert_allclose(cx[0, 50:80], (1 - t) * left + t * right, atol=1e-12)
+    np.testing.assert_allclose(nx[0, 50:80], (1 - t) * (0.04 * 3 + 0.01 * 0) / 3 + t * 0.01)
+    assert np.isnan(cx[1:]).all()
+
+
+def test_hole_estimates_do_not_depend_on_the_tiling(client):
+    """The lazy version reads max_hole + edge columns around each block: any chunking, one result."""
+    import dask.array as da
+
+    from geocoder import Status
+    from geocoder.pipeline.lines import hole_estimates_lazy
+    from geocoder.quality.lines import LineOptions, hole_estimates
+
+    rng = np.random.default_rng(3)
+    h, w = 64, 700
+    dx = rng.normal(0, 0.1, (h, w)).cumsum(axis=1) * 0.01
+    dy = rng.normal(0, 0.1, (h, w)).cumsum(axis=1) * 0.01
+    status = np.full((h, w), Status.MATCHED, np.uint8)
+    for r in range(h):  # holes of 5-150 px, many across the chunk boundaries
+        c = int(rng.integers(20, 500))
+        status[r, c : c + int(rng.integers(5, 150))] = Status.NO_TEXTURE
+    sig = np.full((h, w), 0.05, np.float32)
+    zero = np.zeros((h, w))
+    opts = LineOptions()
+    want = hole_estimates(dx, dy, sig**2, sig**2, status == Status.MATCHED, status == Status.NO_TEXTURE,
+                          max_hole=opts.max_hole, edge=opts.edge)
+    for chunk in (64, 128, 700):
+        field = {"dx": da.from_array(dx, chunks=chunk), "dy": da.from_array(dy, chunks=chunk),
+                 "status": da.from_array(status, chunks=chunk), "sigma_x": da.from_array(sig, chunks=chunk),
+                 "sigma_y": da.from_array(sig, chunks=chunk)}
+        got = hole_estimates_lazy(field, (da.from_array(zero, chunks=chunk),) * 2, opts).compute()
+        assert (got[4] > 0).sum() == want[4].sum() > 0
+        np.testing.assert_allclose(got[0][want[4]], want[0][want[4]], rtol=1e-5, atol=1e-6)

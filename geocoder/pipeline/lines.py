@@ -11,7 +11,7 @@ import dask
 import dask.array as da
 import numpy as np
 
-from ..quality.lines import SUMS, LineCorrection, LineOptions, combine_sums, line_corrections, line_sums
+from ..quality.lines import SUMS, LineCorrection, LineOptions, combine_sums, hole_estimates, line_corrections, line_sums
 from ..status import Status
 
 
@@ -45,13 +45,39 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     return line_corrections(sums, min_count=options.min_count, max_gap=options.max_gap)
 
 
-def apply_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], rows: LineCorrection) -> dict[str, da.Array]:
+def _hole_block(stack: np.ndarray, *, max_hole: int, edge: int) -> np.ndarray:
+    dx, dy, px, py, status, sx, sy = stack
+    usable = (status == Status.MATCHED) | (status == Status.FILLED)
+    target = (status == Status.NO_TEXTURE) | (status == Status.BLUNDER)
+    cx, cy, nx, ny, ok = hole_estimates(dx - px, dy - py, sx * sx, sy * sy, usable, target, max_hole=max_hole, edge=edge)
+    return np.stack([cx, cy, nx, ny, ok, ok, ok]).astype(np.float32)
+
+
+def hole_estimates_lazy(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], options: LineOptions) -> da.Array:
+    """:func:`geocoder.quality.lines.hole_estimates` over the whole field (lazy, (7, H, W) float32:
+    ``cx, cy, nx, ny, ok`` and ``ok`` twice more).
+
+    One task per tile reads its rows with ``max_hole + edge`` columns more on either side,
+    so a hole that crosses a tile's edge sees both of its ends: the same for any tiling.
+    """
+    stack = da.stack([field["dx"], field["dy"], polynomial[0], polynomial[1], field["status"].astype(np.float32),
+                      field["sigma_x"], field["sigma_y"]])
+    stack = stack.astype(np.float32).rechunk({0: 7})
+    depth = options.max_hole + options.edge + 1
+    return da.map_overlap(_hole_block, stack, depth={0: 0, 1: 0, 2: depth}, boundary="none", dtype=np.float32,
+                          max_hole=options.max_hole, edge=options.edge)
+
+
+def apply_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], rows: LineCorrection,
+                      options: LineOptions = LineOptions()) -> dict[str, da.Array]:
     """The field with every unmatched pixel of a corrected row estimated (lazy).
 
-    Pixels flagged ``NO_TEXTURE`` or ``BLUNDER`` in a row with a correction, between the
-    first and last column its correction may reach, take the polynomial plus the
-    correction, status ``ESTIMATED`` and the correction's sigma; all other pixels are
-    unchanged.
+    Pixels flagged ``NO_TEXTURE`` or ``BLUNDER`` in a hole of at most ``options.max_hole``
+    pixels bounded by usable pixels on both sides of their line take the polynomial plus the
+    residual interpolated between the hole's ends (:func:`hole_estimates_lazy`); the others in a
+    row with a correction, between the first and last column its correction may reach, the
+    polynomial plus the row's correction. Both get status ``ESTIMATED`` and their sigma; all
+    other pixels are unchanged.
 
     Parameters
     ----------
@@ -61,6 +87,8 @@ def apply_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da
         The global polynomial's ``dx, dy``.
     rows : LineCorrection
         From :func:`row_corrections`.
+    options : LineOptions
+        ``max_hole`` and ``edge`` of the interpolation across holes.
 
     Returns
     -------
@@ -75,11 +103,28 @@ def apply_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da
     status = field["status"]
     cols = da.arange(field["dx"].shape[1], chunks=field["dx"].chunks[1])[None, :]
     within = (cols >= column(np.nan_to_num(rows.first, nan=np.inf))) & (cols <= column(np.nan_to_num(rows.last, nan=-np.inf)))
-    est = ((status == Status.NO_TEXTURE) | (status == Status.BLUNDER)) & within
+    target = (status == Status.NO_TEXTURE) | (status == Status.BLUNDER)
+    holes = hole_estimates_lazy(field, polynomial, options)
+    # a hole needs its ends' noise or its line's spread for a sigma
+    known = (da.isfinite(holes[2]) & da.isfinite(holes[3])) | (column(np.isfinite(rows.sx) & np.isfinite(rows.sy)) > 0)
+    by_hole = target & (holes[4] > 0) & known
+    by_line = target & within & ~by_hole
+    est = by_hole | by_line
     out = dict(field)
-    out["dx"] = da.where(est, polynomial[0] + column(np.nan_to_num(rows.cx)), field["dx"]).astype(np.float32)
-    out["dy"] = da.where(est, polynomial[1] + column(np.nan_to_num(rows.cy)), field["dy"]).astype(np.float32)
+    for k, (c, corr, sig) in enumerate((("dx", rows.cx, rows.sx), ("dy", rows.cy, rows.sy))):
+        poly = polynomial[k]
+        line = column(np.nan_to_num(corr))
+        spread = column(np.nan_to_num(sig, nan=np.inf)) ** 2  # how far the line is from one shift
+        noise = holes[2 + k]
+        # how much of the ends' departure from the line's mean to keep: all of it where the line
+        # is far from one shift, none where the ends differ from the mean by their noise only
+        keep = da.where(np.isfinite(spread), spread / da.maximum(spread + noise, 1e-12), 1.0)
+        value = line + keep * (holes[k] - line)
+        out[c] = da.where(by_hole, poly + value, da.where(by_line, poly + line, field[c])).astype(np.float32)
+        s = f"sigma_{c[1]}"
+        # the posterior variance of the shrunk departure, keep * noise (= (1 - keep) * spread);
+        # with nothing known of the ends' noise (keep = 0), the line's spread
+        hole_sigma = da.sqrt(da.where(keep > 0, keep * noise, spread))
+        out[s] = da.where(by_hole, hole_sigma, da.where(by_line, column(sig), field[s])).astype(np.float32)
     out["status"] = da.where(est, np.uint8(Status.ESTIMATED), status).astype(np.uint8)
-    out["sigma_x"] = da.where(est, column(rows.sx), field["sigma_x"]).astype(np.float32)
-    out["sigma_y"] = da.where(est, column(rows.sy), field["sigma_y"]).astype(np.float32)
     return out

@@ -421,7 +421,7 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
         field_ = dense_field(result, (dx, dy), opts.postfilter)
         if opts.lines.enabled:
             with timer("line estimates"):
-                field_ = apply_corrections(field_, (dx, dy), row_corrections(field_, (dx, dy), opts.lines))
+                field_ = apply_corrections(field_, (dx, dy), row_corrections(field_, (dx, dy), opts.lines), opts.lines)
         dx, dy = field_["dx"], field_["dy"]
         extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
     registered = resample(dreader, dx, dy, method=opts.resampling)

@@ -19,8 +19,10 @@ polynomial alone, which cannot know the line's shift.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 #: Quantities :func:`line_sums` returns per row, in this order: added over the blocks of a row
@@ -41,11 +43,18 @@ class LineOptions:
         Fewest usable (matched or filled) pixels a row needs for its own correction.
     max_gap : int
         Most consecutive rows without their own correction interpolated across.
+    max_hole : int
+        Longest run of unmatched pixels along a line (px) that takes the interpolation of the
+        residuals at its two ends instead of the line's mean (0: never).
+    edge : int
+        Usable pixels (at most) averaged at each end of a hole for its residual there.
     """
 
     enabled: bool = True
     min_count: int = 32
     max_gap: int = 8
+    max_hole: int = 128
+    edge: int = 32
 
     def validate(self) -> None:
         """Raise ValueError if an option is out of range."""
@@ -53,6 +62,10 @@ class LineOptions:
             raise ValueError(f"min_count must be an integer >= 1, got {self.min_count!r}")
         if int(self.max_gap) != self.max_gap or self.max_gap < 0:
             raise ValueError(f"max_gap must be an integer >= 0, got {self.max_gap!r}")
+        if int(self.max_hole) != self.max_hole or self.max_hole < 0:
+            raise ValueError(f"max_hole must be an integer >= 0, got {self.max_hole!r}")
+        if int(self.edge) != self.edge or self.edge < 1:
+            raise ValueError(f"edge must be an integer >= 1, got {self.edge!r}")
 
 
 def line_sums(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray, usable: np.ndarray,
@@ -181,3 +194,90 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8)
             out[f"s{name}"][gap] = np.sqrt(np.maximum(v[a], v[b])) + 0.5 * np.abs(c[b] - c[a])
         out["first"][gap], out["last"][gap] = np.maximum(first[a], first[b]), np.minimum(last[a], last[b])
     return LineCorrection(**out, own=own)
+
+
+@numba.njit(nogil=True, cache=True)
+def _holes(rx, ry, vx, vy, usable, target, max_hole, edge, ox, oy, onx, ony, ok):  # pragma: no cover - compiled
+    h, w = usable.shape
+    ends = np.empty((2, 4))
+    for r in range(h):
+        c = 0
+        while c < w:
+            if not target[r, c]:
+                c += 1
+                continue
+            a = c  # a run of targets [a, b)
+            while c < w and target[r, c]:
+                c += 1
+            b = c
+            if a == 0 or b == w or not usable[r, a - 1] or not usable[r, b] or b - a > max_hole:
+                continue
+            for side in range(2):
+                n = 0
+                nv = 0
+                ends[side, :] = 0.0
+                j = a - 1 if side == 0 else b
+                while 0 <= j < w and usable[r, j] and n < edge:
+                    ends[side, 0] += rx[r, j]
+                    ends[side, 1] += ry[r, j]
+                    n += 1
+                    if vx[r, j] == vx[r, j] and vy[r, j] == vy[r, j]:  # filled pixels carry no sigma
+                        ends[side, 2] += vx[r, j]
+                        ends[side, 3] += vy[r, j]
+                        nv += 1
+                    j += -1 if side == 0 else 1
+                ends[side, 0:2] /= n
+                if nv > 0:
+                    ends[side, 2:4] /= nv
+                else:
+                    ends[side, 2:4] = np.inf  # nothing known of the ends' noise: the line's mean
+            span = float(b - a + 1)
+            for j in range(a, b):
+                t = (j - a + 1) / span
+                ox[r, j] = (1.0 - t) * ends[0, 0] + t * ends[1, 0]
+                oy[r, j] = (1.0 - t) * ends[0, 1] + t * ends[1, 1]
+                onx[r, j] = (1.0 - t) * ends[0, 2] + t * ends[1, 2]
+                ony[r, j] = (1.0 - t) * ends[0, 3] + t * ends[1, 3]
+                ok[r, j] = True
+
+
+def hole_estimates(rx: np.ndarray, ry: np.ndarray, vx: np.ndarray, vy: np.ndarray, usable: np.ndarray,
+                   target: np.ndarray, *, max_hole: int, edge: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals interpolated along each line across holes bounded by usable pixels on both sides.
+
+    A run of ``target`` pixels (unmatched pixels of the overlap) with a usable pixel right
+    before and right after it on the same row, at most ``max_hole`` long, takes the linear
+    interpolation between the mean residuals of the (at most ``edge``) usable pixels at
+    either end, and the same interpolation of their variances: the residual after the
+    polynomial may change along a line, and the ends of a hole see that change. Nothing is
+    extrapolated: a run that reaches the block's edge or a pixel of another kind is left alone.
+
+    Parameters
+    ----------
+    rx, ry : ndarray (H, W)
+        Residuals ``d - polynomial`` (read where ``usable``).
+    vx, vy : ndarray (H, W)
+        Variances (sigma^2) of the usable pixels.
+    usable : ndarray of bool (H, W)
+        Matched or filled pixels.
+    target : ndarray of bool (H, W)
+        Pixels to estimate (disjoint from ``usable``).
+    max_hole, edge : int
+        See :class:`LineOptions`.
+
+    Returns
+    -------
+    cx, cy, nx, ny : ndarray of float64 (H, W)
+        Interpolated residual and the interpolated variance of the ends' matches (NaN where
+        not estimated).
+    ok : ndarray of bool (H, W)
+        Estimated pixels.
+    """
+    shape = usable.shape
+    out = [np.full(shape, np.nan) for _ in range(4)]
+    ok = np.zeros(shape, dtype=np.bool_)
+    if max_hole > 0:
+        _holes(*(np.asarray(a, np.float64) for a in (rx, ry, vx, vy)), np.asarray(usable, np.bool_),
+               np.asarray(target, np.bool_), int(max_hole), int(edge), *out, ok)
+    return (*out, ok)

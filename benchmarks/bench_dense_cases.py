@@ -1,0 +1,249 @@
+"""Dense field quality over many cases (issue 14): accuracy per status, coverage, calibration, hole filling.
+
+Every case is a real image (Sentinel-2, Landsat 7, two aerial photographs from ../shared/data)
+or the demo's synthetic texture, cut and warped by the simulator (affine + quadratic up to
+15 px, scan-line turbulence of the given strength or none, 2 % noise, gain and offset), so
+every pixel has a known true displacement. Each case is registered twice on one local
+cluster: with full region growing (``DenseOptions(col_step=1, halo=4)``, the dense default
+until issue 12's lattice + every-pixel pass) and with today's default. Printed per case and
+mode: RMSE, share of the overlap and share off by more than 1 px per status (matched,
+filled, estimated, the rest) and over the whole overlap; coverage of the textured overlap
+(:func:`geocoder.testing.textured_overlap`); calibration RMSE / RMS(sigma) per axis on matched
+pixels; wall time.
+
+Then seed 003 sec. 10's check of hole filling, on the default's output: in scan lines that
+are at least 90 % matched, a stretch of L matched pixels is removed (one per line, at a
+random place with matches on both sides), the post-filter fills what it can (holes up to its
+``max_gap``) and the per-line estimate takes the rest; the table gives, per hole length, the
+RMS difference of the filled / estimated values from the removed matches and from the truth.
+
+Usage::
+
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    path: str | None  # None: the demo's synthetic texture
+    origin: tuple[int, int]
+    size: int
+    seed: int
+    turbulence: tuple[float, float] | None
+
+
+CASES = {c.name: c for c in (
+    Case("s2-1024", "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif", (300, 1100), 1024, 22, (1.0, 3.0)),
+    Case("s2-2048-strong", "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif", (300, 100), 2048, 31, (2.0, 4.0)),
+    Case("s2-1024-smooth", "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif", (1300, 1100), 1024, 23, None),
+    Case("landsat7-576", "landsat7_rasterio/RGB.byte.tif", (20, 60), 576, 24, (1.0, 3.0)),
+    Case("aerial-512", "baviaanskloof/ngi_rgb_byte_1.tif", (60, 107), 512, 21, (1.0, 3.0)),
+    Case("aerial2-1024-mild", "baviaanskloof/3324c_2015_1004_05_0182_RGB.tif", (40, 40), 1024, 25, (0.5, 1.5)),
+    Case("demo-1024-smooth", None, (0, 0), 1024, 0, None),
+)}
+
+HOLES = (4, 8, 16, 24, 32, 64, 128)
+
+
+def make_case(case: Case, work: Path):
+    """Write the pair's two GeoTIFFs; return (base path, distorted path, SyntheticPair)."""
+    import rasterio
+    from affine import Affine
+
+    from geocoder.scene import write_geotiff
+    from geocoder.simulate.texture import synthetic_ortho
+    from geocoder.simulate.warp import make_pair
+
+    margin = 48
+    if case.path is None:
+        src = synthetic_ortho((case.size + 2 * margin,) * 2, seed=case.seed)
+        pair = make_pair(src, shape=(case.size, case.size), seed=case.seed, max_displacement=15.0, margin=margin)
+        transform, crs = Affine(2, 0, 500000, 0, -2, 4000000), "EPSG:32633"
+    else:
+        r0, c0 = case.origin
+        n = case.size + 2 * margin
+        with rasterio.open(SHARED / case.path) as f:
+            src = f.read(1, window=((r0, r0 + n), (c0, c0 + n))).astype(np.float32)
+            nodata = f.nodata
+            transform, crs = f.transform * Affine.translation(c0 + margin, r0 + margin), f.crs
+        if src.shape != (n, n):
+            raise SystemExit(f"{case.name}: crop {src.shape} out of {case.path}")
+        if nodata is not None:
+            src[src == nodata] = np.nan
+        pair = make_pair(src, shape=(case.size, case.size), seed=case.seed, margin=margin, turbulence=case.turbulence)
+    base, dist = work / f"{case.name}-base.tif", work / f"{case.name}-dist.tif"
+    write_geotiff(base, pair.base, transform=transform, crs=crs)
+    write_geotiff(dist, pair.distorted)
+    return base, dist, pair
+
+
+def figures(ds, pair) -> dict:
+    """Per-status accuracy, coverage of the textured overlap and calibration against the truth."""
+    from geocoder import Status
+    from geocoder.testing import textured_overlap
+
+    st = ds.status.values
+    ex, ey = ds.dx.values - pair.dx, ds.dy.values - pair.dy
+    err = np.hypot(ex, ey)
+    inside = (st != Status.OUTSIDE) & np.isfinite(pair.dx)
+    out = {}
+    groups = {
+        "matched": st == Status.MATCHED, "filled": st == Status.FILLED, "estimated": st == Status.ESTIMATED,
+        "rest": inside & ~np.isin(st, [Status.MATCHED, Status.FILLED, Status.ESTIMATED]), "all": inside,
+    }
+    for name, m in groups.items():
+        m = m & inside
+        e = err[m]
+        out[name] = (float(m.sum() / inside.sum()), float(np.sqrt(np.mean(e**2))) if e.size else np.nan,
+                     float(np.mean(e > 1.0)) if e.size else np.nan)
+    m = groups["matched"] & inside
+    good = (groups["matched"] | groups["filled"]) & inside
+    tex = textured_overlap(pair) & inside
+    out["coverage"] = float((good & tex).sum() / max(tex.sum(), 1))
+    out["rmse_good"] = float(np.sqrt(np.mean(err[good] ** 2)))
+    out["calibration"] = tuple(
+        float(np.sqrt(np.mean(e[m] ** 2)) / np.sqrt(np.mean(s[m] ** 2))) for e, s in ((ex, ds.sigma_x.values), (ey, ds.sigma_y.values))
+    )
+    est = groups["estimated"] & inside
+    out["calibration_estimated"] = tuple(
+        float(np.sqrt(np.mean(e[est] ** 2)) / np.sqrt(np.mean(s[est] ** 2))) if est.any() else np.nan
+        for e, s in ((ex, ds.sigma_x.values), (ey, ds.sigma_y.values))
+    )
+    return out
+
+
+def hole_check(ds, pair, rng: np.random.Generator) -> list[tuple]:
+    """Seed 003 sec. 10: remove stretches of matches, fill them again, compare (per hole length)."""
+    from geocoder import Status
+    from geocoder.kernels.polynomial import PolyMap
+    from geocoder.quality.lines import LineOptions, combine_sums, hole_estimates, line_corrections, line_sums
+    from geocoder.quality.postfilter import postfilter
+
+    st0 = ds.status.values
+    dx0, dy0 = ds.dx.values.astype(np.float64), ds.dy.values.astype(np.float64)
+    sx0, sy0 = ds.sigma_x.values, ds.sigma_y.values
+    mapping = PolyMap.from_dict(json.loads(ds.attrs["mapping"]))
+    h, w = st0.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    px, py = mapping(xs, ys)
+    px, py = px - xs, py - ys
+    matched = st0 == Status.MATCHED
+    inside = st0 != Status.OUTSIDE
+    good_rows = np.flatnonzero(matched.sum(axis=1) >= 0.9 * np.maximum(inside.sum(axis=1), 1))
+    rows_out = []
+    for length in HOLES:
+        st, dx, dy = st0.copy(), dx0.copy(), dy0.copy()
+        removed = np.zeros((h, w), dtype=bool)
+        for r in good_rows:
+            # a stretch of `length` matches with 8 matches on either side
+            run = np.convolve(matched[r].astype(np.int32), np.ones(length + 16, np.int32), mode="valid") == length + 16
+            starts = np.flatnonzero(run)
+            if starts.size == 0:
+                continue
+            c = int(rng.choice(starts)) + 8
+            removed[r, c : c + length] = True
+        st[removed] = Status.NO_TEXTURE
+        dx[removed] = np.nan
+        dy[removed] = np.nan
+        fdx, fdy, fst = postfilter(np.where(st == Status.MATCHED, dx, np.nan), np.where(st == Status.MATCHED, dy, np.nan),
+                                   np.where(st == Status.MATCHED, Status.MATCHED, np.where(inside, Status.NO_TEXTURE, Status.OUTSIDE)).astype(np.uint8))
+        usable = (fst == Status.MATCHED) | (fst == Status.FILLED)
+        corr = line_corrections(combine_sums(line_sums(fdx, fdy, px, py, usable, sx0, sy0)[..., None]))
+        cols = np.arange(w)[None, :]
+        reach = (cols >= corr.first[:, None]) & (cols <= corr.last[:, None]) & np.isfinite(corr.cx)[:, None]
+        opts = LineOptions()
+        target = inside & ~usable
+        hx, hy, nx, ny, by_hole = hole_estimates(fdx - px, fdy - py, sx0**2, sy0**2, usable, target,
+                                                 max_hole=opts.max_hole, edge=opts.edge)
+        est = removed & ~usable & (by_hole | reach)
+        vals = []
+        for h_, n_, c_, s_, f_ in ((hx, nx, corr.cx, corr.sx, fdx), (hy, ny, corr.cy, corr.sy, fdy)):
+            line = np.nan_to_num(c_)[:, None]
+            spread = np.nan_to_num(s_, nan=np.inf)[:, None] ** 2
+            keep = np.where(np.isfinite(spread), spread / (spread + n_), 1.0)
+            vals.append(np.where(by_hole, px * 0 + line + keep * (h_ - line), np.where(est, line, np.nan)))
+        edx = np.where(est, px + vals[0], fdx)
+        edy = np.where(est, py + vals[1], fdy)
+        filled = removed & (fst == Status.FILLED)
+        for name, m, vx, vy in (("filled", filled, fdx, fdy), ("estimated", est, edx, edy)):
+            if not m.any():
+                rows_out.append((length, name, 0, np.nan, np.nan, np.nan))
+                continue
+            d_match = np.hypot(vx[m] - dx0[m], vy[m] - dy0[m])
+            d_truth = np.hypot(vx[m] - pair.dx[m], vy[m] - pair.dy[m])
+            rows_out.append((length, name, int(m.sum()), float(np.sqrt(np.mean(d_match**2))),
+                             float(np.sqrt(np.mean(d_truth**2))), float(np.mean(d_truth > 1.0))))
+    return rows_out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--modes", default="full,default")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--tile", type=int, default=512)
+    args = ap.parse_args()
+    from distributed import Client
+
+    from geocoder import register
+    from geocoder.pipeline.dense import DenseOptions
+    from geocoder.pipeline.register import RegisterOptions
+    from geocoder.runtime import local_cluster
+
+    modes = {"full": RegisterOptions(matching=DenseOptions(col_step=1, halo=4)), "default": None}
+    table, holes = [], []
+    with tempfile.TemporaryDirectory(prefix="bench-dense-cases-") as tmp, local_cluster(args.workers) as cluster, \
+            Client(cluster) as client:
+        work = Path(tmp)
+        for name in args.cases.split(","):
+            case = CASES[name]
+            base, dist, pair = make_case(case, work)
+            for mode in args.modes.split(","):
+                out = work / f"{name}-{mode}.zarr"
+                t0 = time.perf_counter()
+                ds = register(base, dist, out=out, tile=args.tile, client=client, options=modes[mode], show_progress=False)
+                wall = time.perf_counter() - t0
+                f = figures(ds, pair)
+                table.append((name, mode, wall, f))
+                print(f"{name} {mode}: {wall:.1f} s, {json.dumps(f)}", file=sys.stderr, flush=True)
+                if mode == "default":
+                    holes += [(name, *r) for r in hole_check(ds, pair, np.random.default_rng(case.seed))]
+                shutil.rmtree(out, ignore_errors=True)
+    print("\n| case | mode | wall s | coverage of textured overlap | RMSE matched+filled | calibration x / y "
+          "| matched: share, RMSE, > 1 px | filled | estimated | calibration estimated x / y | rest | all overlap: RMSE, > 1 px |")
+    print("|---|---|---:|---:|---:|---|---|---|---|---|---|---|")
+    for name, mode, wall, f in table:
+        def cell(k):
+            share, rmse, over = f[k]
+            return f"{share:.1%}, {rmse:.3f}, {over:.2%}" if share > 0 else "–"
+        print(f"| {name} | {mode} | {wall:.1f} | {f['coverage']:.1%} | {f['rmse_good']:.3f} | "
+              f"{f['calibration'][0]:.2f} / {f['calibration'][1]:.2f} | {cell('matched')} | {cell('filled')} | "
+              f"{cell('estimated')} | {f['calibration_estimated'][0]:.2f} / {f['calibration_estimated'][1]:.2f} | {cell('rest')} | {f['all'][1]:.3f}, {f['all'][2]:.2%} |")
+    print("\nHole filling (seed 003 sec. 10), default mode: stretches of L matches removed from lines >= 90 % matched,"
+          " filled again by the post-filter (L <= its max_gap) or estimated (ends interpolated up to 128 px, else the line's mean)")
+    print("| case | L px | by | pixels | RMS vs removed matches px | RMSE vs truth px | > 1 px vs truth |")
+    print("|---|---:|---|---:|---:|---:|---:|")
+    for name, length, by, n, dm, dt, over in holes:
+        if n:
+            print(f"| {name} | {length} | {by} | {n} | {dm:.3f} | {dt:.3f} | {over:.2%} |")
+
+
+if __name__ == "__main__":
+    main()
