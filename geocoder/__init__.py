@@ -6,6 +6,7 @@ from . import accessor  # noqa: F401  (registers the .geocoder accessor on DataA
 from .errors import GeocoderError, InputError, MatchingError
 from .options import get_option, get_options, set_options
 from .pipeline.register import RegisterOptions, register
+from .reporting import report
 from .scene import ingest, open_scene
 from .status import Status
 
@@ -26,5 +27,6 @@ __all__ = [
     "ingest",
     "open_scene",
     "register",
+    "report",
     "set_options",
 ]

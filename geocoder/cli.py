@@ -1,4 +1,4 @@
-"""Command line: ``geocoder register | ingest | export | mosaic | simulate | adjust | demo | cluster up|down``.
+"""Command line: ``geocoder register | ingest | export | mosaic | report | simulate | adjust | demo | cluster up|down``.
 
 Every command calls the same library functions a notebook would; ``--scheduler`` (default
 ``DASK_SCHEDULER_ADDRESS``) chooses a running Dask cluster, otherwise a local one is started.
@@ -281,8 +281,8 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, re
         if bad:
             raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
     if report is not None:  # refused now, not after the job
-        from .mosaic.report import require_matplotlib
         from .outputs import check_output
+        from .reporting import require_matplotlib
 
         require_matplotlib()
         check_output(report, inputs=(*scenes, reference, out, *([cog] if cog else [])), overwrite=overwrite, option="--report")
@@ -300,6 +300,37 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, re
 
         where = write_report(out, report, overwrite=overwrite)
         click.echo(f"wrote the report {where}/report.md")
+
+
+@main.command("report")
+@click.argument("store")
+@click.option("--out", required=True, help="Report directory to write: report.html and its PNG figures (written whole or not at all).")
+@click.option("--base", default=None, help="Base image (default: the path the store's summary records); needed for the HSI check.")
+@click.option("--distorted", default=None,
+              help="Distorted image (default: the recorded path); needed for the polynomial-only HSI and the grey-level statistics.")
+@click.option("--truth", default=None,
+              help="True displacement: a Zarr store with dx/dy on the base grid, or the store of 'geocoder simulate' whose ortho is the base.")
+@click.option("--band", default=1, show_default=True, type=click.IntRange(min=1), help="1-based band of the images shown.")
+@click.option("--max-size", default=1500, show_default=True, type=click.IntRange(min=64),
+              help="Largest side (px) of the maps: the finest overview level at most this large.")
+@overwrite_option
+@click.option("--scheduler", default=None, envvar="DASK_SCHEDULER_ADDRESS",
+              help="Run the reductions on this Dask cluster (default: $DASK_SCHEDULER_ADDRESS, else threads in this process).")
+@_friendly
+def report_command(store, out, base, distorted, truth, band, max_size, overwrite, scheduler):
+    """Write the HTML report of the register output STORE: HSI check, disparity, along-track spectrum, statistics."""
+    from .reporting import report as run
+
+    t0 = time.perf_counter()
+    kwargs = {"base": base, "distorted": distorted, "truth": truth, "band": band, "max_size": max_size, "overwrite": overwrite}
+    if scheduler:
+        from .runtime import dask_client
+
+        with dask_client(scheduler=scheduler):
+            where = run(store, out, **kwargs)
+    else:
+        where = run(store, out, **kwargs)
+    click.echo(f"wrote {where}/report.html in {time.perf_counter() - t0:.1f} s")
 
 
 @main.command()

@@ -43,6 +43,8 @@ PUBLIC: dict[str, str | tuple[str, ...]] = {
     "geocoder.accessor": "__all__",  # the two accessor classes (their methods are added below)
     "geocoder.options": DEFINED_HERE,  # set_options, get_option, get_options
     "geocoder.cluster": DEFINED_HERE,  # up, down, read_info, ClusterInfo, Stopped, ...
+    "geocoder.reporting": "__all__",  # report(), require_matplotlib
+    "geocoder.reporting.analysis": "__all__",  # the report's pure functions (HSI, along-track spectrum, ...)
 }
 
 #: Public names that are not callables (nothing to check), each with why.

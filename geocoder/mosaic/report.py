@@ -26,8 +26,9 @@ import numpy as np
 import xarray as xr
 
 from .. import storage
-from ..errors import EnvironmentFailure, InputError
+from ..errors import InputError
 from ..outputs import check_output, commit_output, write_marker
+from ..reporting import require_matplotlib
 from .compose import NO_SOURCE
 from .run import MosaicSummary
 
@@ -35,30 +36,6 @@ __all__ = ["require_matplotlib", "write_report"]
 
 #: The product name of a report directory (its marker file).
 PRODUCT = "mosaic-report"
-
-
-def require_matplotlib():
-    """matplotlib's pyplot on the Agg backend, or a clear error naming the extra to install.
-
-    Returns
-    -------
-    module
-        ``matplotlib.pyplot``.
-
-    Raises
-    ------
-    EnvironmentFailure
-        If matplotlib is not installed.
-    """
-    try:
-        import matplotlib
-    except ImportError:
-        raise EnvironmentFailure("matplotlib", "the mosaic report draws its figures with matplotlib, which is not "
-                                               "installed; install the report extra: pip install 'geocoder[report]'") from None
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _overview(source, max_size: int) -> tuple[np.ndarray, np.ndarray, int]:
