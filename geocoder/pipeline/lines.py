@@ -64,8 +64,10 @@ def hole_estimates_lazy(field: dict[str, da.Array], polynomial: tuple[da.Array, 
                       field["sigma_x"], field["sigma_y"]])
     stack = stack.astype(np.float32).rechunk({0: 7})
     depth = options.max_hole + options.edge + 1
-    return da.map_overlap(_hole_block, stack, depth={0: 0, 1: 0, 2: depth}, boundary="none", dtype=np.float32,
-                          max_hole=options.max_hole, edge=options.edge)
+    out = da.map_overlap(_hole_block, stack, depth={0: 0, 1: 0, 2: depth}, boundary="none", dtype=np.float32,
+                         max_hole=options.max_hole, edge=options.edge)
+    # map_overlap merges a block narrower than the depth into its neighbour: back to the tiles
+    return out.rechunk({1: field["dx"].chunks[0], 2: field["dx"].chunks[1]})
 
 
 def apply_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], rows: LineCorrection,
