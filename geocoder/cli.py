@@ -190,7 +190,7 @@ def ingest(src, out, tile, nodata, overwrite, scheduler):
     from .scene import open_scene
 
     check_output(out, inputs=(src,), overwrite=overwrite, option="OUT")
-    open_scene(src, nodata=nodata)  # a missing or unreadable input fails before a cluster starts
+    open_scene(src, nodata=nodata, grid=True)  # a missing or unreadable input fails before a cluster starts
     with dask_client(scheduler=scheduler) as c:
         scene = run(src, out, tile=tile, nodata=nodata, client=c, overwrite=overwrite)  # None: the option
     click.echo(f"wrote {out}: {scene.sizes['band']} band(s), {scene.sizes['y']} x {scene.sizes['x']} px, tile {scene.data.chunksize[-1]}")

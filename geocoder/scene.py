@@ -63,6 +63,7 @@ def open_scene(
     chunks: int | dict | None = 512,
     nodata: float | None = None,
     bands: list[int] | None = None,
+    grid: bool = False,
 ) -> xr.DataArray:
     """Open a scene lazily as a float32 ``(band, y, x)`` DataArray with NaN as nodata.
 
@@ -79,6 +80,11 @@ def open_scene(
         e.g. converted JPEG2000, do not declare it).
     bands : list of int, optional
         1-based band numbers to keep; default all.
+    grid : bool, optional
+        The scene defines an output grid (the base of a registration, a mosaic's reference,
+        an ingested store), which must be north-up: a rotated geotransform is refused. Any
+        other scene with a rotated geotransform is opened as not georeferenced (its place is
+        then found from its pixels).
 
     Returns
     -------
@@ -131,6 +137,12 @@ def open_scene(
         da = da.where(da != nodata)
     crs = da.rio.crs
     transform = da.rio.transform()
+    if crs is not None and not transform.is_rectilinear:
+        if grid:
+            raise InputError(spath, f"has a rotated geotransform ({tuple(round(v, 6) for v in transform[:6])}); geocoder's "
+                                    "outputs are north-up grids: warp it north-up first (e.g. gdalwarp IN OUT.tif)")
+        crs = None
+        da = da.drop_vars("spatial_ref", errors="ignore")
     georef = crs is not None and not transform.is_identity and "spatial_ref" in da.coords
     if crs is None:
         # pixel index coordinates, as the conventions say (x = column, y = row)
@@ -212,7 +224,7 @@ def ingest(
         from .options import get_option
 
         tile = get_option("tile")
-    scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands)
+    scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands, grid=True)
     scene = scene.chunk(_chunks(tile))
     out = storage.normalize(out)
     tmp = storage.temporary_sibling(out) if atomic else out

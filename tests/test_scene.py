@@ -69,3 +69,22 @@ def test_raw_image_gets_pixel_coordinates(tmp_path):
     path2 = tmp_path / "geo.tif"
     write_geotiff(path2, np.ones((2, 3, 4)), transform=Affine(2, 0, 100, 0, -2, 50), crs="EPSG:32633")
     assert open_scene(path2).attrs["georeferenced"]
+
+
+def test_rotated_geotransform_is_refused_as_a_grid_and_dropped_otherwise(tmp_path):
+    """A rotated GeoTIFF (as the aerial photographs in ../shared/data) cannot define a north-up
+    output grid: refused with the file named; as a distorted scene its georeference is dropped."""
+    from affine import Affine
+
+    from geocoder.errors import InputError
+    from geocoder.scene import open_scene, write_geotiff
+
+    path = tmp_path / "rotated.tif"
+    img = np.random.default_rng(0).random((1, 64, 64)).astype(np.float32)
+    write_geotiff(path, img, transform=Affine(-5.6, -0.02, 1000.0, -0.02, 5.6, 2000.0), crs="EPSG:32735")
+    with pytest.raises(InputError, match="rotated.tif: has a rotated geotransform"):
+        open_scene(path, grid=True)
+    scene = open_scene(path)
+    assert scene.attrs["georeferenced"] is False
+    np.testing.assert_array_equal(scene.x.values, np.arange(64))
+    np.testing.assert_array_equal(scene.values, img)

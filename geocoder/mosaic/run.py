@@ -444,7 +444,7 @@ def mosaic(
         out = check_output(out, inputs=(*scenes, reference), overwrite=overwrite)
     if cog is not None:  # refused now, not after the job
         check_output(cog, inputs=(*scenes, reference, *([out] if out is not None else [])), overwrite=overwrite)
-    ref = open_scene(reference, chunks=tile)
+    ref = open_scene(reference, chunks=tile, grid=True)
     opened = [open_scene(s, chunks=tile) for s in scenes]
     bands = {s.sizes["band"] for s in opened}
     if len(bands) != 1:

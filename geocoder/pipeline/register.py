@@ -357,7 +357,7 @@ def register(
         out = check_output(out, inputs=(base, distorted), overwrite=overwrite)
         if not storage.is_url(out) and not os.path.isdir(os.path.dirname(out)):
             raise InputError(out, "the output's parent directory does not exist")
-    bscene = base if isinstance(base, xr.DataArray) else open_scene(base, chunks=tile, nodata=nodata)
+    bscene = base if isinstance(base, xr.DataArray) else open_scene(base, chunks=tile, nodata=nodata, grid=True)
     dscene = distorted if isinstance(distorted, xr.DataArray) else open_scene(distorted, chunks=tile, nodata=dist_nodata)
     for scene, b in ((bscene, opts.band), (dscene, opts.dist_band or opts.band)):
         if not 1 <= b <= scene.sizes["band"]:
