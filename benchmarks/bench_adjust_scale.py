@@ -25,7 +25,12 @@ Both: every 20th point is a control point (1 m a-priori sigma), the others are t
 only their height held (15 m); image noise 0.3 px; tie points start 20 m off.  Each size runs in
 a fresh subprocess; its peak resident memory is sampled by a psutil thread every 20 ms (the whole
 process, data generation included).  ``s/iteration`` is the median wall time of a Gauss-Newton
-step (solve, new residuals, Jacobians, reduced normal equations).
+step (solve, back-substitution, new residuals, Jacobians, reduced normal equations).
+``--block-size`` sets the observations per chunk of the streamed assembly
+(:mod:`geocoder.adjust.normals`); ``--block-size 0`` assembles everything at once and keeps the
+Jacobians (faster, memory proportional to the observations); ``--keep-jacobians 0`` evaluates the
+parameter Jacobians again for the back-substitution instead of keeping them (memory bounded by
+the block size, one more Jacobian evaluation per iteration).
 
 On a shared machine set ``OPENBLAS_NUM_THREADS=1``: a multi-threaded BLAS whose threads wait for
 a busy core can be several times slower than one thread.
@@ -33,6 +38,7 @@ a busy core can be several times slower than one thread.
 Run:  python benchmarks/bench_adjust_scale.py                  # both models, 100, 300, 1000 frames
       python benchmarks/bench_adjust_scale.py --quick          # both models, 20 and 50 frames
       python benchmarks/bench_adjust_scale.py --models linescanner --frames 100
+      python benchmarks/bench_adjust_scale.py --block-size 0              # one chunk
 """
 
 from __future__ import annotations
@@ -48,6 +54,7 @@ import numpy as np
 import psutil
 
 from geocoder.adjust.models import LineScannerModel
+from geocoder.adjust.normals import DEFAULT_BLOCK_SIZE
 from geocoder.adjust.solver import AdjustOptions, Frame, Problem, adjust
 from geocoder.simulate.points import block_of_strips
 from geocoder.simulate.satellite import ecef_to_geodetic
@@ -214,7 +221,8 @@ def make_linescanner_block(n_frames: int, obs_per_frame: int = 1000, seed: int =
     return problem, [sc.parameters() for sc in truths]
 
 
-def run_one(n_frames: int, iterations: int, model: str = "bicubic") -> dict:
+def run_one(n_frames: int, iterations: int, model: str = "bicubic", block_size: int | None = DEFAULT_BLOCK_SIZE,
+            keep_jacobians: int | None = None) -> dict:
     proc = psutil.Process()
     peak = [proc.memory_info().rss]
     stop = threading.Event()
@@ -230,7 +238,8 @@ def run_one(n_frames: int, iterations: int, model: str = "bicubic") -> dict:
     problem, truth = make_block(n_frames) if model == "bicubic" else make_linescanner_block(n_frames)
     t_build = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = adjust(problem, AdjustOptions(max_iter=iterations, tol=1e-8, covariance=False))
+    keep = {} if keep_jacobians is None else {"keep_jacobians": keep_jacobians}
+    res = adjust(problem, AdjustOptions(max_iter=iterations, tol=1e-8, covariance=False, block_size=block_size, **keep))
     t_total = time.perf_counter() - t0
     stop.set()
     th.join()
@@ -244,7 +253,7 @@ def run_one(n_frames: int, iterations: int, model: str = "bicubic") -> dict:
         "model": model, "frames": n_frames, "unknowns": 32 * n_frames, "points": int(problem.ground.shape[0]),
         "observations": int(problem.obs_frame.size), "iterations": res.iterations,
         "s_per_iteration": float(np.median(res.time_per_iteration)), "adjust_s": t_total, "build_s": t_build,
-        "peak_gb": peak[0] / 1e9, "solver": res.solver, "sigma0": res.sigma0, "offset_error_px": float(err),
+        "peak_gb": peak[0] / 1e9, "solver": res.solver, "block_size": block_size, "sigma0": res.sigma0, "offset_error_px": float(err),
     }
 
 
@@ -254,15 +263,20 @@ def main() -> None:
     ap.add_argument("--models", nargs="*", default=["bicubic", "linescanner"], choices=["bicubic", "linescanner"])
     ap.add_argument("--frames", type=int, nargs="*", help="block sizes (frames)")
     ap.add_argument("--iterations", type=int, default=3, help="Gauss-Newton iterations per size")
+    ap.add_argument("--block-size", type=int, default=DEFAULT_BLOCK_SIZE,
+                    help=f"observations per chunk of the streamed assembly (default {DEFAULT_BLOCK_SIZE}; 0 = one chunk)")
+    ap.add_argument("--keep-jacobians", type=int, default=None,
+                    help="bytes of parameter Jacobians kept between assembly and back-substitution "
+                         "(default: the library's; 0 = always evaluate again, memory bounded by the block size)")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: one size, JSON on stdout
     ap.add_argument("--model", default="bicubic", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.one:
-        print(json.dumps(run_one(a.one, a.iterations, a.model)))
+        print(json.dumps(run_one(a.one, a.iterations, a.model, a.block_size or None, a.keep_jacobians)))
         return
     sizes = a.frames or ([20, 50] if a.quick else [100, 300, 1000])
     print(f"{psutil.cpu_count()} CPUs, {psutil.virtual_memory().total / 1e9:.0f} GB RAM; 32 parameters per frame; "
-          f"median of {a.iterations} Gauss-Newton iterations\n")
+          f"median of {a.iterations} Gauss-Newton iterations; block size {a.block_size or 'all'} observations\n")
     print("| model | frames | unknowns | observations | s/iteration | iterations | peak GB | growth (time ratio / size ratio) "
           "| solver | sigma0 | error |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|")
@@ -270,7 +284,9 @@ def main() -> None:
         prev = None
         for n in sizes:
             out = subprocess.run([sys.executable, __file__, "--one", str(n), "--iterations", str(a.iterations),
-                                  "--model", model], capture_output=True, text=True, check=True)
+                                  "--model", model, "--block-size", str(a.block_size)]
+                                 + ([] if a.keep_jacobians is None else ["--keep-jacobians", str(a.keep_jacobians)]),
+                                 capture_output=True, text=True, check=True)
             r = json.loads(out.stdout.strip().splitlines()[-1])
             growth = "-" if prev is None else (f"{r['s_per_iteration'] / prev['s_per_iteration']:.2f} / "
                                                f"{r['frames'] / prev['frames']:.1f}")
