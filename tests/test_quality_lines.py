@@ -127,3 +127,55 @@ def test_hole_estimates_do_not_depend_on_the_tiling(client):
         got = lazy.compute()
         assert (got[4] > 0).sum() == want[4].sum() > 0
         np.testing.assert_allclose(got[0][want[4]], want[0][want[4]], rtol=1e-5, atol=1e-6)
+
+
+def test_smoothing_takes_the_noise_off_a_shift_and_keeps_a_change_along_the_line():
+    """Matches on lines that move as one (turbulence, or a field the polynomial explains) take
+    the window's mean; a residual that changes along the line well above the noise stays."""
+    from geocoder.quality.lines import smooth_matches
+
+    rng = np.random.default_rng(5)
+    h, w, s = 200, 600, 0.08
+    shift = rng.normal(0, 1.0, (h, 1))  # one shift per line
+    truth = np.repeat(shift, w, axis=1)
+    truth[100:, 300:] += 2.0 * np.sin(np.arange(300) / 15.0)  # lower half: changes along the line
+    noise = rng.normal(0, s, (h, w))
+    noise = np.apply_along_axis(lambda r: np.convolve(r, np.ones(51) / np.sqrt(51), mode="same"), 1, noise)  # correlated along the line, as matches sharing a template
+    r = truth + noise
+    sig = np.full((h, w), s)
+    matched = np.ones((h, w), bool)
+    matched[:, :10] = False
+    rx, _, sx, _ = smooth_matches(r, r, sig, sig, matched, window=129, correlation=51)
+    flat = (slice(0, 100), slice(80, 520))
+    raw_err = np.sqrt(np.mean((r - truth)[flat] ** 2))
+    new_err = np.sqrt(np.mean((rx - truth)[flat] ** 2))
+    assert new_err < 0.75 * raw_err  # the shift: the mean of the window (2.5 independent matches in 129 px here)
+    assert 0.6 <= new_err / np.sqrt(np.mean(sx[flat] ** 2)) <= 1.6  # its sigma says so
+    wavy = (slice(100, 200), slice(380, 520))
+    assert np.sqrt(np.mean((rx - truth)[wavy] ** 2)) <= 1.2 * np.sqrt(np.mean((r - truth)[wavy] ** 2))  # kept
+    np.testing.assert_array_equal(rx[:, :10], r[:, :10])  # unmatched pixels unchanged
+
+
+def test_smoothing_does_not_depend_on_the_tiling(client):
+    import dask.array as da
+
+    from geocoder import Status
+    from geocoder.pipeline.lines import smooth_field
+    from geocoder.quality.lines import LineOptions, smooth_matches
+
+    rng = np.random.default_rng(4)
+    h, w = 48, 700
+    dx = rng.normal(0, 0.1, (h, w)) + rng.normal(0, 1, (h, 1))
+    dy = rng.normal(0, 0.1, (h, w))
+    status = np.where(rng.random((h, w)) < 0.8, Status.MATCHED, Status.NO_TEXTURE).astype(np.uint8)
+    sig = np.full((h, w), 0.1, np.float32)
+    zero = np.zeros((h, w))
+    want = smooth_matches(dx, dy, sig, sig, status == Status.MATCHED, window=129, correlation=51)
+    for chunk in (64, 128, 700):
+        field = {"dx": da.from_array(dx, chunks=chunk), "dy": da.from_array(dy, chunks=chunk),
+                 "status": da.from_array(status, chunks=chunk), "sigma_x": da.from_array(sig, chunks=chunk),
+                 "sigma_y": da.from_array(sig, chunks=chunk)}
+        got = smooth_field(field, (da.from_array(zero, chunks=chunk),) * 2, LineOptions(smooth=129), correlation=51)
+        assert got["dx"].chunks == field["dx"].chunks
+        np.testing.assert_allclose(got["dx"].compute(), want[0], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(got["sigma_y"].compute(), want[3], rtol=1e-5, atol=1e-6)

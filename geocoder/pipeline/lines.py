@@ -11,7 +11,8 @@ import dask
 import dask.array as da
 import numpy as np
 
-from ..quality.lines import SUMS, LineCorrection, LineOptions, combine_sums, hole_estimates, line_corrections, line_sums
+from ..quality.lines import (SUMS, LineCorrection, LineOptions, combine_sums, hole_estimates, line_corrections, line_sums,
+                             smooth_matches)
 from ..status import Status
 
 
@@ -130,3 +131,47 @@ def apply_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da
         out[s] = da.where(by_hole, hole_sigma, da.where(by_line, column(sig), field[s])).astype(np.float32)
     out["status"] = da.where(est, np.uint8(Status.ESTIMATED), status).astype(np.uint8)
     return out
+
+
+def _smooth_block(stack: np.ndarray, *, window: int, correlation: int) -> np.ndarray:
+    dx, dy, px, py, status, sx, sy = stack
+    matched = status == Status.MATCHED
+    rx, ry, sgx, sgy = smooth_matches(dx - px, dy - py, sx, sy, matched, window=window, correlation=correlation)
+    return np.stack([px + rx, py + ry, sgx, sgy, status, status, status]).astype(np.float32)
+
+
+def smooth_field(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], options: LineOptions, *,
+                 correlation: int) -> dict[str, da.Array]:
+    """The matched pixels smoothed along their lines (:func:`geocoder.quality.lines.smooth_matches`; lazy).
+
+    One task per tile reads its rows with half a window more on either side, so the result
+    does not depend on the tiling. Only ``MATCHED`` pixels change (value and sigma).
+
+    Parameters
+    ----------
+    field : dict of dask.array.Array
+        ``dx``, ``dy``, ``status``, ``sigma_x``, ``sigma_y`` (and others, passed through).
+    polynomial : tuple of dask.array.Array
+        The global polynomial's ``dx, dy``.
+    options : LineOptions
+        ``smooth``: the window (0: the field is returned as it is).
+    correlation : int
+        Template length along the line (px).
+
+    Returns
+    -------
+    dict of dask.array.Array
+        The same keys as ``field``.
+    """
+    if not options.smooth:
+        return field
+    stack = da.stack([field["dx"], field["dy"], polynomial[0], polynomial[1], field["status"].astype(np.float32),
+                      field["sigma_x"], field["sigma_y"]])
+    stack = stack.astype(np.float32).rechunk({0: 7})
+    out = da.map_overlap(_smooth_block, stack, depth={0: 0, 1: 0, 2: options.smooth // 2 + 1}, boundary="none",
+                         dtype=np.float32, window=options.smooth, correlation=correlation)
+    out = out.rechunk({1: field["dx"].chunks[0], 2: field["dx"].chunks[1]})
+    res = dict(field)
+    for k, name in enumerate(("dx", "dy", "sigma_x", "sigma_y")):
+        res[name] = out[k]
+    return res

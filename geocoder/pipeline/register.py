@@ -44,7 +44,7 @@ from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points
 from .job import Job, JobRun, fingerprint
-from .lines import apply_corrections, row_corrections
+from .lines import apply_corrections, row_corrections, smooth_field
 from .resample import model_status, polynomial_displacement, resample
 
 log = logging.getLogger("geocoder")
@@ -422,6 +422,7 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
         if opts.lines.enabled:
             with timer("line estimates"):
                 field_ = apply_corrections(field_, (dx, dy), row_corrections(field_, (dx, dy), opts.lines), opts.lines)
+                field_ = smooth_field(field_, (dx, dy), opts.lines, correlation=2 * opts.matching.alsc.radius + 1)
         dx, dy = field_["dx"], field_["dy"]
         extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
     registered = resample(dreader, dx, dy, method=opts.resampling)

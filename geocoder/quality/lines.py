@@ -48,6 +48,13 @@ class LineOptions:
         residuals at its two ends instead of the line's mean (0: never).
     edge : int
         Usable pixels (at most) averaged at each end of a hole for its residual there.
+    smooth : int
+        Window (px, odd) along the line of the sigma-weighted smoothing of the matches
+        (:func:`smooth_matches`; 0: none, the default). Opt-in: with 129 the matched pixels'
+        RMSE fell 0.065 -> 0.052 px (aerial 512^2), 0.104 -> 0.071 (S2 1024^2), 0.067 ->
+        0.043 (the demo), but a window mean also carries the lattice's small path
+        dependence to its neighbours: 0.0102 px between tilings 256 and 1024 on one pixel of
+        the S2 test pair, over the tests' 0.01 bound (issue 14's notes).
     """
 
     enabled: bool = True
@@ -55,6 +62,7 @@ class LineOptions:
     max_gap: int = 8
     max_hole: int = 128
     edge: int = 32
+    smooth: int = 0
 
     def validate(self) -> None:
         """Raise ValueError if an option is out of range."""
@@ -66,6 +74,8 @@ class LineOptions:
             raise ValueError(f"max_hole must be an integer >= 0, got {self.max_hole!r}")
         if int(self.edge) != self.edge or self.edge < 1:
             raise ValueError(f"edge must be an integer >= 1, got {self.edge!r}")
+        if int(self.smooth) != self.smooth or self.smooth < 0 or (self.smooth and self.smooth % 2 == 0):
+            raise ValueError(f"smooth must be 0 or an odd integer, got {self.smooth!r}")
 
 
 def line_sums(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray, usable: np.ndarray,
@@ -281,3 +291,59 @@ def hole_estimates(rx: np.ndarray, ry: np.ndarray, vx: np.ndarray, vy: np.ndarra
         _holes(*(np.asarray(a, np.float64) for a in (rx, ry, vx, vy)), np.asarray(usable, np.bool_),
                np.asarray(target, np.bool_), int(max_hole), int(edge), *out, ok)
     return (*out, ok)
+
+
+def smooth_matches(rx: np.ndarray, ry: np.ndarray, sx: np.ndarray, sy: np.ndarray, matched: np.ndarray, *,
+                   window: int, correlation: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sigma-weighted smoothing of the matches' residuals along each line (a Wiener shrinkage).
+
+    Around every matched pixel, over ``window`` pixels of its line, the matches' mean residual
+    ``m``, and their spread beyond their own noise ``v = max(var(r) - mean(sigma^2), 0)``; the
+    residual becomes ``m + k (r - m)`` with ``k = v / (v + sigma^2)``. Where the residual
+    after the polynomial is one shift along the window (the turbulence of a line, or nothing
+    at all on a field the polynomial explains), ``k`` is small and the pixel takes the
+    window's mean, whose noise is that of many matches; where it changes (relief, a local
+    distortion), ``k`` nears one and the match stands. Its sigma is the posterior one,
+    ``k sigma^2 + (1 - k)^2 mean(sigma^2) / n_eff``, with ``n_eff`` the matches in the window
+    over ``correlation`` (neighbouring matches share most of their template).
+
+    Parameters
+    ----------
+    rx, ry : ndarray (H, W)
+        Residuals ``d - polynomial`` (read where ``matched``).
+    sx, sy : ndarray (H, W)
+        The matches' sigmas.
+    matched : ndarray of bool (H, W)
+    window : int
+        Odd window along the line (px).
+    correlation : int
+        Template length along the line (px).
+
+    Returns
+    -------
+    rx, ry, sx, sy : ndarray of float64 (H, W)
+        Smoothed residuals and sigmas at the matched pixels (the inputs elsewhere).
+    """
+    from scipy.ndimage import uniform_filter1d
+
+    def box(a: np.ndarray) -> np.ndarray:
+        return uniform_filter1d(a, window, axis=1, mode="constant") * window
+
+    m = np.asarray(matched, dtype=bool)
+    count = box(m.astype(np.float64))
+    n = np.maximum(count, 1.0)
+    n_eff = np.maximum(count / max(correlation, 1), 1.0)
+    out = []
+    for r0, s0 in ((rx, sx), (ry, sy)):
+        r = np.where(m, np.asarray(r0, np.float64), 0.0)
+        s2 = np.where(m, np.asarray(s0, np.float64) ** 2, 0.0)
+        mean = box(r) / n
+        noise = box(s2) / n
+        spread = np.maximum(box(r * r) / n - mean * mean - noise, 0.0)
+        k = spread / np.maximum(spread + s2, 1e-300)
+        value = mean + k * (r - mean)
+        sigma = np.sqrt(k * s2 + (1.0 - k) ** 2 * noise / n_eff)
+        ok = m & (count > 0.5)
+        out.append((np.where(ok, value, r0), np.where(ok, sigma, s0)))
+    (vx, sgx), (vy, sgy) = out
+    return vx, vy, sgx, sgy
