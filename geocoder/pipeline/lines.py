@@ -54,6 +54,21 @@ def _hole_block(stack: np.ndarray, *, max_hole: int, edge: int) -> np.ndarray:
     return np.stack([cx, cy, nx, ny, ok, ok, ok]).astype(np.float32)
 
 
+def _along_lines(block, field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], depth: int,
+                 **kwargs) -> da.Array:
+    """``block`` on the stack ``(dx, dy, px, py, status, sigma_x, sigma_y)`` of every tile with
+    ``depth`` columns more on either side (lazy, (7, H, W) float32, the field's tiles).
+
+    A tile reading its rows that far beyond its edges gives the same result for any tiling.
+    """
+    stack = da.stack([field["dx"], field["dy"], polynomial[0], polynomial[1], field["status"].astype(np.float32),
+                      field["sigma_x"], field["sigma_y"]])
+    stack = stack.astype(np.float32).rechunk({0: 7})
+    out = da.map_overlap(block, stack, depth={0: 0, 1: 0, 2: depth}, boundary="none", dtype=np.float32, **kwargs)
+    # map_overlap merges a block narrower than the depth into its neighbour: back to the tiles
+    return out.rechunk({1: field["dx"].chunks[0], 2: field["dx"].chunks[1]})
+
+
 def hole_estimates_lazy(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], options: LineOptions) -> da.Array:
     """:func:`geocoder.quality.lines.hole_estimates` over the whole field (lazy, (7, H, W) float32:
     ``cx, cy, nx, ny, ok`` and ``ok`` twice more).
@@ -61,14 +76,8 @@ def hole_estimates_lazy(field: dict[str, da.Array], polynomial: tuple[da.Array, 
     One task per tile reads its rows with ``max_hole + edge`` columns more on either side,
     so a hole that crosses a tile's edge sees both of its ends: the same for any tiling.
     """
-    stack = da.stack([field["dx"], field["dy"], polynomial[0], polynomial[1], field["status"].astype(np.float32),
-                      field["sigma_x"], field["sigma_y"]])
-    stack = stack.astype(np.float32).rechunk({0: 7})
-    depth = options.max_hole + options.edge + 1
-    out = da.map_overlap(_hole_block, stack, depth={0: 0, 1: 0, 2: depth}, boundary="none", dtype=np.float32,
-                         max_hole=options.max_hole, edge=options.edge)
-    # map_overlap merges a block narrower than the depth into its neighbour: back to the tiles
-    return out.rechunk({1: field["dx"].chunks[0], 2: field["dx"].chunks[1]})
+    return _along_lines(_hole_block, field, polynomial, options.max_hole + options.edge + 1,
+                        max_hole=options.max_hole, edge=options.edge)
 
 
 def apply_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], rows: LineCorrection,
@@ -165,12 +174,8 @@ def smooth_field(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Arra
     """
     if not options.smooth:
         return field
-    stack = da.stack([field["dx"], field["dy"], polynomial[0], polynomial[1], field["status"].astype(np.float32),
-                      field["sigma_x"], field["sigma_y"]])
-    stack = stack.astype(np.float32).rechunk({0: 7})
-    out = da.map_overlap(_smooth_block, stack, depth={0: 0, 1: 0, 2: options.smooth // 2 + 1}, boundary="none",
-                         dtype=np.float32, window=options.smooth, correlation=correlation)
-    out = out.rechunk({1: field["dx"].chunks[0], 2: field["dx"].chunks[1]})
+    out = _along_lines(_smooth_block, field, polynomial, options.smooth // 2 + 1, window=options.smooth,
+                       correlation=correlation)
     res = dict(field)
     for k, name in enumerate(("dx", "dy", "sigma_x", "sigma_y")):
         res[name] = out[k]
