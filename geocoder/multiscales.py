@@ -51,6 +51,7 @@ import os
 
 import dask
 import dask.array as da
+import numba
 import numpy as np
 import xarray as xr
 from affine import Affine
@@ -80,10 +81,36 @@ _ENCODING_KEYS = ("compressors", "filters", "serializer", "dtype", "_FillValue",
 # ---------------------------------------------------------------------------- worker side
 
 
-def _pair_sum(a: np.ndarray) -> np.ndarray:
-    """Sum of every 2 x 2 block of the last two axes (even sides); slices, not a strided reduction."""
-    rows = a[..., 0::2, :] + a[..., 1::2, :]
-    return rows[..., 0::2] + rows[..., 1::2]
+@numba.njit(nogil=True, cache=True)
+def _cell(v, n, k, r, c, weighted):  # pragma: no cover - compiled
+    """``(v * n, n)`` of one pixel; ``(0, 0)`` outside the array or where ``v`` is NaN."""
+    if r >= v.shape[1] or c >= v.shape[2]:
+        return 0.0, 0.0
+    x = np.float64(v[k, r, c])
+    if x != x:
+        return 0.0, 0.0
+    m = np.float64(n[k, r, c]) if weighted else 1.0
+    return x * m, m
+
+
+@numba.njit(nogil=True, cache=True)
+def _halve_kernel(v, n, out):  # pragma: no cover - compiled
+    """2 x 2 block means of the valid (non-NaN) ``v`` weighted by ``n`` (empty ``n``: 1 each),
+    summed ``(top-left + bottom-left) + (top-right + bottom-right)``, and the counts, into ``out``."""
+    weighted = n.shape[0] > 0
+    for k in range(v.shape[0]):
+        for i in range(out.shape[2]):
+            r = 2 * i
+            for j in range(out.shape[3]):
+                c = 2 * j
+                t00, n00 = _cell(v, n, k, r, c, weighted)
+                t10, n10 = _cell(v, n, k, r + 1, c, weighted)
+                t01, n01 = _cell(v, n, k, r, c + 1, weighted)
+                t11, n11 = _cell(v, n, k, r + 1, c + 1, weighted)
+                total = (t00 + t10) + (t01 + t11)
+                count = (n00 + n10) + (n01 + n11)
+                out[0, k, i, j] = total / count if count > 0 else np.nan
+                out[1, k, i, j] = count
 
 
 def _halve_mean(values: np.ndarray, counts: np.ndarray | None = None) -> np.ndarray:
@@ -94,22 +121,13 @@ def _halve_mean(values: np.ndarray, counts: np.ndarray | None = None) -> np.ndar
     Returns ``(2, ..., ceil(h / 2), ceil(w / 2))`` float64: the means (NaN where nothing is
     valid) and the counts.
     """
-    v = np.asarray(values, dtype=np.float64)
-    valid = ~np.isnan(v)
-    if counts is None:
-        n = valid.astype(np.float64)
-        total = np.where(valid, v, 0.0)
-    else:
-        n = np.where(valid, counts, 0).astype(np.float64)
-        total = np.where(valid, v * n, 0.0)
-    h, w = v.shape[-2:]
-    if h % 2 or w % 2:
-        pad = [(0, 0)] * (v.ndim - 2) + [(0, h % 2), (0, w % 2)]
-        total, n = np.pad(total, pad), np.pad(n, pad)
-    total, n = _pair_sum(total), _pair_sum(n)
-    mean = np.full_like(total, np.nan)
-    np.divide(total, n, out=mean, where=n > 0)
-    return np.stack([mean, n])
+    v = np.asarray(values)
+    lead, (h, w) = v.shape[:-2], v.shape[-2:]
+    v3 = v.reshape(-1, h, w)
+    n3 = np.empty((0, 0, 0), dtype=np.float64) if counts is None else np.asarray(counts).reshape(-1, h, w)
+    out = np.empty((2, v3.shape[0], (h + 1) // 2, (w + 1) // 2))
+    _halve_kernel(v3, n3, out)
+    return out.reshape(2, *lead, *out.shape[2:])
 
 
 # ---------------------------------------------------------------------------- graphs

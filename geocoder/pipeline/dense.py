@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import dask
 import dask.array as da
@@ -142,12 +143,71 @@ class DenseResult:
     slots: np.ndarray
 
 
-def create_state(path: str, shape: tuple[int, int], tile: int) -> None:
-    """Empty state store of two slots: ``fields`` (2, 12, H, W) float32 NaN and ``code`` (2, H, W) int8 -1."""
+def create_state(path: str, shape: tuple[int, int], tile: int, lattice: int = 1) -> None:
+    """Empty state store of two slots: ``fields`` (2, 12, H, W) float32 NaN and ``code`` (2, H, W) int8 -1.
+
+    With ``lattice = k > 1`` the region growing's matches (every k-th column only) go to the
+    compact arrays ``lattice`` (2, 12, H, ceil(W / k)) and ``lattice_code``, one chunk per tile
+    (``tile`` a multiple of k), so its rounds read and write a k-th of the full fields.
+    """
     g = zarr.open_group(path, mode="w", zarr_format=3)
     # one chunk per field and tile: a stage that needs a few fields decodes only those
     g.create_array("fields", shape=(2, NFIELDS, *shape), chunks=(1, 1, tile, tile), dtype="float32", fill_value=np.nan)
     g.create_array("code", shape=(2, *shape), chunks=(1, tile, tile), dtype="int8", fill_value=UNVISITED)
+    if lattice > 1:
+        lshape, lchunk = (shape[0], -(-shape[1] // lattice)), (tile, tile // lattice)
+        # all fields of a tile in one chunk: the rounds always read and write them together
+        g.create_array("lattice", shape=(2, NFIELDS, *lshape), chunks=(1, NFIELDS, *lchunk), dtype="float32",
+                       fill_value=np.nan)
+        g.create_array("lattice_code", shape=(2, *lshape), chunks=(1, *lchunk), dtype="int8", fill_value=UNVISITED)
+
+
+def lattice_step(grid: TileGrid, opts: DenseOptions) -> int:
+    """Column step of the compact lattice state (see :func:`create_state`), 1 for none.
+
+    The lattice state is compact when the region growing runs on every ``col_step``-th
+    column, the pixels between are matched by ``densify="field"``, and every tile but the
+    last starts on a lattice column (its width a multiple of ``col_step``).
+    """
+    k = opts.col_step
+    aligned = all(c % k == 0 for c in grid.cols[:-1]) and all(r == grid.rows[0] for r in grid.rows[:-1]) \
+        and grid.rows[0] == grid.cols[0]
+    return k if k > 1 and opts.densify == "field" and aligned else 1
+
+
+def _core_columns(tile: Tile, k: int) -> tuple[slice, slice]:
+    """Columns of a tile's core in the state arrays (compact for ``k > 1``) and within the core."""
+    if k == 1:
+        return slice(tile.col0, tile.col1), slice(None)
+    return slice(tile.col0 // k, -(-tile.col1 // k)), slice(None, None, k)
+
+
+def _read_core(g, tile: Tile, slot: int, k: int, what: str) -> np.ndarray:
+    """``"code"`` (h, w) int8 or ``"fields"`` (12, h, w) float32 of a tile's core from slot ``slot``,
+    at full width (UNVISITED / NaN between the lattice columns of a compact state)."""
+    stored, within = _core_columns(tile, k)
+    rows = slice(tile.row0, tile.row1)
+    shape = (tile.row1 - tile.row0, tile.col1 - tile.col0)
+    if what == "code":
+        part = g["code" if k == 1 else "lattice_code"][slot, rows, stored]
+        out = np.full(shape, UNVISITED, dtype=np.int8)
+    else:
+        part = g["fields" if k == 1 else "lattice"][slot, :, rows, stored]
+        out = np.full((NFIELDS, *shape), np.nan, dtype=np.float32)
+    if k == 1:
+        return part
+    out[..., within] = part
+    return out
+
+
+def _write_core(g, tile: Tile, slot: int, k: int, values: np.ndarray, code: np.ndarray,
+                fields: tuple[int, ...] | None = None) -> None:
+    """Write a tile's core (``values`` (12, h, w') or the ``fields`` given, ``code`` (h, w'), w'
+    the stored columns) to slot ``slot``."""
+    stored, _ = _core_columns(tile, k)
+    rows = slice(tile.row0, tile.row1)
+    g["fields" if k == 1 else "lattice"][slot, slice(None) if fields is None else list(fields), rows, stored] = values
+    g["code" if k == 1 else "lattice_code"][slot, rows, stored] = code
 
 
 def seeds_from_tiepoints(tp: TiePoints, mapping: PolyMap) -> np.ndarray:
@@ -179,14 +239,15 @@ def _route(seeds: np.ndarray, grid: TileGrid, exclude: str | None = None) -> dic
 
 
 def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, dist_reader: WindowReader,
-               band: int, dist_band: int, state: str, slot: int, mapping: PolyMap, opts: DenseOptions):
-    """Grow one tile from ``seeds``: reads slot ``slot`` of its core, writes slot ``1 - slot``.
+               band: int, dist_band: int, state: str, slot: int, mapping: PolyMap, opts: DenseOptions, k: int = 1):
+    """Grow one tile from ``seeds``: reads slot ``slot`` of its core, writes slot ``1 - slot``
+    (of the compact lattice state when ``k > 1``, see :func:`create_state`).
 
     Returns ``(new matches, outgoing halo seeds, whether the other slot was written)``.
     """
     h, w = shape
     g = zarr.open_group(state, mode="r+")
-    core_code = g["code"][slot, tile.row0 : tile.row1, tile.col0 : tile.col1]
+    core_code = _read_core(g, tile, slot, k, "code")
     rows = seeds[:, 0].astype(np.int64) - tile.row0
     cols = seeds[:, 1].astype(np.int64) - tile.col0
     incore = (rows >= 0) & (rows < core_code.shape[0]) & (cols >= 0) & (cols < core_code.shape[1])
@@ -210,7 +271,7 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     cr, cc = tile.row0 - wr0, tile.col0 - wc0
     csl = (slice(cr, cr + tile.row1 - tile.row0), slice(cc, cc + tile.col1 - tile.col0))
     core = params[csl]  # a view: filled in place, no float64 copy of the tile's fields
-    core[:] = np.moveaxis(g["fields"][slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1], 0, -1)
+    core[:] = np.moveaxis(_read_core(g, tile, slot, k, "fields"), 0, -1)
     xs = np.arange(tile.col0, tile.col1)[None, :] - dc0
     ys = np.arange(tile.row0, tile.row1)[:, None] - dr0
     core[..., 0] += xs  # stored as displacement, used as distorted-window position
@@ -227,11 +288,12 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
                       max_tries=opts.max_tries, col_step=opts.col_step)
     if new == 0:
         return 0, np.empty((0, 10)), False
-    out = np.moveaxis(core, -1, 0).astype(np.float32)
-    out[0] = core[..., 0] - xs
-    out[1] = core[..., 1] - ys
-    g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out
-    g["code"][1 - slot, tile.row0 : tile.row1, tile.col0 : tile.col1] = code[csl]
+    _, within = _core_columns(tile, k)
+    stored = core[:, within]
+    out = np.moveaxis(stored, -1, 0).astype(np.float32)
+    out[0] = stored[..., 0] - xs[:, within]
+    out[1] = stored[..., 1] - ys
+    _write_core(g, tile, 1 - slot, k, out, code[csl][:, within])
     # matches made in the halo are the neighbours' seeds for the next round
     halo = code == 0
     halo[csl] = False
@@ -261,9 +323,10 @@ def grow_tiles(
     """
     shape = (grid.height, grid.width)
     tiles = {t.key: t for t in grid}
+    lat = lattice_step(grid, opts)
     start = next((r for r in range(opts.max_rounds, -1, -1) if job is not None and job.done(f"dense-round-{r}")), None)
     if start is None:
-        create_state(state, shape, grid.rows[0])
+        create_state(state, shape, grid.rows[0], lat)
         start, pending, slots, per_round = 0, _route(seeds, grid), {k: 0 for k in tiles}, []
         if job is not None:
             job.save("dense-round-0", (pending, slots, per_round))
@@ -279,7 +342,7 @@ def grow_tiles(
         tasks = {
             k: dask.delayed(_grow_task, pure=False)(
                 tiles[k], pending[k], shape, base_reader, dist_reader, band, dist_band, state, slots[k], mapping, opts,
-                dask_key_name=f"grow-{k}-r{rnd}-{token}",
+                lat, dask_key_name=f"grow-{k}-r{rnd}-{token}",
             )
             for k in keys
         }
@@ -298,8 +361,8 @@ def grow_tiles(
         if job is not None:
             job.save(f"dense-round-{rnd + 1}", (pending, slots, per_round))
     if opts.col_step > 1:
-        task, name, phase = ((_densify_task, "densify", "dense matching (every pixel)") if opts.densify == "field"
-                             else (_fill_task, "fill", "dense matching (fill)"))
+        task, name, phase = ((partial(_densify_task, lattice=lat), "densify", "dense matching (every pixel)")
+                             if opts.densify == "field" else (_fill_task, "fill", "dense matching (fill)"))
         slots = _tile_pass(task, name, phase, base_reader, dist_reader, grid, mapping, state, slots, band=band,
                            dist_band=dist_band, opts=opts, job=job)
     return DenseResult(state, rounds, not pending, per_round, _slot_grid(grid, slots))
@@ -311,8 +374,8 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
 
     Reads the lattice matches of the core and of ``col_step`` columns on either side (every
     tile from its current slot), writes the core to the other slot of the tile. Returns
-    ``(new matches, whether the other slot was written)``; a tile with nothing to fill
-    returns at once, without reading any image.
+    ``(new matches, the slot written or None)``; a tile with nothing to fill returns at
+    once, without reading any image.
     """
     h, w = shape
     k = opts.col_step
@@ -330,7 +393,7 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
     right = matched[:, np.clip(cr, 0, n - 1)] & (cr < n)[None, :]
     todo = (left | right) & ~lattice & (scode != 0)
     if not todo[:, core].any():
-        return 0, False
+        return 0, None
     pad = max(opts.alsc.radius, opts.alsc.ry) + 2
     wr0, wc0 = tile.row0 - pad, tile.col0 - pad
     base = base_reader.read(wr0, tile.row1 + pad, wc0, tile.col1 + pad)[band]
@@ -357,17 +420,19 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
     g = zarr.open_group(state, mode="r+")
     g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out
     g["code"][1 - slot, tile.row0 : tile.row1, tile.col0 : tile.col1] = code[csl]
-    return new, True
+    return new, 1 - slot
 
 
 def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: WindowReader, band: int, dist_band: int,
-                  state: str, slots: np.ndarray, grid: TileGrid, mapping: PolyMap, opts: DenseOptions):
+                  state: str, slots: np.ndarray, grid: TileGrid, mapping: PolyMap, opts: DenseOptions, lattice: int = 1):
     """Match every pixel of one tile's core from the lattice (:mod:`geocoder.match.densify`).
 
     Reads the lattice matches of the core grown by the templates of every resampling round
     (and by ``densify_gap`` columns more for the interpolation along the lines), every tile
-    from its current slot; writes the core to the other slot, every pixel from the dense
-    pass (a lattice match that it rejects is rejected). Returns ``(matches, whether it wrote)``.
+    from its current slot (of the compact state when ``lattice > 1``: then the core is
+    written to slot 0 of the full-width fields, else to the other slot), every pixel from
+    the dense pass (a lattice match that it rejects is rejected). Returns ``(matches, the
+    slot written or None)``.
     """
     h, w = shape
     k, n = opts.col_step, opts.densify_iterations
@@ -379,11 +444,11 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     bc0, bc1 = max(tile.col0 - reach_rounds * rx - 1, 0), min(tile.col1 + reach_rounds * rx + 1, w)
     reach = max(opts.densify_gap, opts.densify_extend)
     sc0, sc1 = max(bc0 - reach, 0), min(bc1 + reach, w)
-    f, scode = _read_state(state, slots, grid, br0, br1, sc0, sc1, fields=_START_FIELDS)
+    f, scode = _read_state(state, slots, grid, br0, br1, sc0, sc1, fields=_START_FIELDS, lattice=lattice)
     cols = np.arange(sc0, sc1)
     matched = (scode == 0) & (cols % k == 0)[None, :]
     if not matched[tile.row0 - br0 : tile.row1 - br0].any():
-        return 0, False
+        return 0, None
     x0, y0, started = lattice_start(f[0] + cols[None, :], f[1] + np.arange(br0, br1)[:, None], f[2], f[3], matched,
                                     max_gap=opts.densify_gap, max_extend=opts.densify_extend)
     wsl = (slice(None), slice(bc0 - sc0, bc1 - sc0))
@@ -395,30 +460,21 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     region = (tile.row0 - br0, tile.row1 - br0, tile.col0 - bc0, tile.col1 - bc0)
     res = densify_window(base, dist, x0 - dc0, y0 - dr0, started, region, options=opts.alsc,
                          iterations=n, tol=opts.densify_tol, gradients=opts.densify_gradients)
-    out = np.empty((NFIELDS, *res.code.shape), dtype=np.float32)  # every field is set below
-    out[0] = res.x + dc0 - np.arange(tile.col0, tile.col1)[None, :]
-    out[1] = res.y + dr0 - np.arange(tile.row0, tile.row1)[:, None]
-    out[2] = 1.0 + res.affine[0]
-    out[3] = res.affine[1]
-    out[4] = res.affine[2]
-    out[5] = 1.0 + res.affine[3]
-    out[6] = res.offset
-    out[7] = res.gain
-    out[8], out[9], out[10] = res.sigma_x, res.sigma_y, res.rho
-    out[11] = n
+    # only what the dense field reads from here on (:data:`_OUT_FIELDS`); the other fields stay NaN
+    out = np.stack([res.x + dc0 - np.arange(tile.col0, tile.col1)[None, :],
+                    res.y + dr0 - np.arange(tile.row0, tile.row1)[:, None],
+                    res.sigma_x, res.sigma_y, res.rho]).astype(np.float32)
     code = res.code
-    slot = int(slots[tile.iy, tile.ix])
-    g = zarr.open_group(state, mode="r+")
-    g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out
-    g["code"][1 - slot, tile.row0 : tile.row1, tile.col0 : tile.col1] = code
-    return int((code == 0).sum()), True
+    slot = 0 if lattice > 1 else 1 - int(slots[tile.iy, tile.ix])
+    _write_core(zarr.open_group(state, mode="r+"), tile, slot, 1, out, code, fields=_OUT_FIELDS)
+    return int((code == 0).sum()), slot
 
 
 def _tile_pass(task, name: str, phase: str, base_reader: WindowReader, dist_reader: WindowReader, grid: TileGrid,
                mapping: PolyMap, state: str, slots: dict[str, int], *, band: int, dist_band: int, opts: DenseOptions,
                job: Job | None) -> dict[str, int]:
     """One pass of ``task`` (:func:`_densify_task` or :func:`_fill_task`) over every tile after
-    the last round; returns the new slots (a tile that wrote flips to its other slot)."""
+    the last round; returns the new slots (of the tiles that wrote, the slot they wrote)."""
     if job is not None and job.done(f"dense-{name}-done"):
         return job.load(f"dense-{name}-done")
     shape = (grid.height, grid.width)
@@ -435,8 +491,8 @@ def _tile_pass(task, name: str, phase: str, base_reader: WindowReader, dist_read
     results = run_tiles(job, f"dense-{name}", tasks, phase=phase)
     slots = dict(slots)
     for k, (_, wrote) in results.items():
-        if wrote:
-            slots[k] = 1 - slots[k]
+        if wrote is not None:
+            slots[k] = wrote
     log.info("dense %s: %d matches", name, int(sum(r[0] for r in results.values())))
     if job is not None:
         job.save(f"dense-{name}-done", slots)
@@ -455,25 +511,30 @@ _START_FIELDS = tuple(FIELDS.index(n) for n in ("x", "y", "a11", "a21"))
 
 
 def _read_state(state: str, slots: np.ndarray, grid: TileGrid, r0: int, r1: int, c0: int, c1: int,
-                fields: tuple[int, ...] = _OUT_FIELDS) -> tuple[np.ndarray, np.ndarray]:
+                fields: tuple[int, ...] = _OUT_FIELDS, lattice: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Fields (default ``x, y, sigma_x, sigma_y, rho``: (5, h, w)) and ``code`` (h, w) of a
-    window of the state, every tile's part from its current slot."""
+    window of the state, every tile's part from its current slot; from the compact lattice
+    state when ``lattice > 1`` (NaN and UNVISITED between its columns)."""
     g = zarr.open_group(state, mode="r")
+    farr, carr = ("fields", "code") if lattice == 1 else ("lattice", "lattice_code")
     redges = np.r_[0, np.cumsum(grid.rows)]
     cedges = np.r_[0, np.cumsum(grid.cols)]
-    out = np.empty((len(fields), r1 - r0, c1 - c0), dtype=np.float32)
-    code = np.empty((r1 - r0, c1 - c0), dtype=np.int8)
+    out = np.full((len(fields), r1 - r0, c1 - c0), np.nan, dtype=np.float32)
+    code = np.full((r1 - r0, c1 - c0), UNVISITED, dtype=np.int8)
     for iy in range(len(grid.rows)):
         ra, rb = max(r0, int(redges[iy])), min(r1, int(redges[iy + 1]))
         if ra >= rb:
             continue
         for ix in range(len(grid.cols)):
             a, b = max(c0, int(cedges[ix])), min(c1, int(cedges[ix + 1]))
-            if a >= b:
+            # the stored columns of [a, b): every column, or the lattice columns in compact form
+            sa, sb = (a, b) if lattice == 1 else (-(-a // lattice), -(-b // lattice))
+            if sa >= sb:
                 continue
             slot = int(slots[iy, ix])
-            out[:, ra - r0 : rb - r0, a - c0 : b - c0] = g["fields"][slot, list(fields), ra:rb, a:b]
-            code[ra - r0 : rb - r0, a - c0 : b - c0] = g["code"][slot, ra:rb, a:b]
+            cols = slice(sa * lattice - c0, (sb - 1) * lattice - c0 + 1, lattice)
+            out[:, ra - r0 : rb - r0, cols] = g[farr][slot, list(fields), ra:rb, sa:sb]
+            code[ra - r0 : rb - r0, cols] = g[carr][slot, ra:rb, sa:sb]
     return out, code
 
 
@@ -497,7 +558,8 @@ def _dense_block(block_info=None, *, state: str, slots: np.ndarray, grid: TileGr
     ]).astype(np.float32)
 
 
-def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfilter_options) -> dict[str, da.Array]:
+def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfilter_options, *, store: bool = False,
+                job: Job | None = None) -> dict[str, da.Array]:
     """Final displacement and quality arrays from the state store (lazy).
 
     Matched pixels go through the scan-line post-filter (blunders removed, short holes
@@ -505,7 +567,9 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
     polynomial's displacement (``fallback``) and keep their flag. One task per tile reads
     its rows of the state, with the post-filter's halo along them, straight from the store
     (every tile from its current slot), so a worker holds one tile's window whatever the
-    scene size.
+    scene size. With ``store``, those tasks run now and write their tiles into the state
+    store (array ``field``, through ``job`` when given), and the arrays returned read them:
+    for callers that compute the field more than once (the line estimates, then the output).
     """
     from ..status import Status
 
@@ -515,6 +579,8 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
         state=result.store, slots=result.slots, grid=grid, postfilter_options=postfilter_options,
         name=f"dense-field-{dask.base.tokenize(result.store, result.slots, postfilter_options)}",
     )
+    if store:
+        stack = _stored(stack, result.store, grid, job)
     dx, dy, status = stack[0], stack[1], stack[2].astype(np.uint8)
     good = (status == Status.MATCHED) | (status == Status.FILLED)
     return {
@@ -525,3 +591,23 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
         "sigma_y": stack[4],
         "correlation": stack[5],
     }
+
+
+def _store_block(state: str, window: tuple[int, int, int, int], block: np.ndarray) -> None:
+    r0, r1, c0, c1 = window
+    zarr.open_group(state, mode="r+")["field"][:, r0:r1, c0:c1] = block
+
+
+def _stored(stack: da.Array, state: str, grid: TileGrid, job: Job | None) -> da.Array:
+    """Write ``stack`` (6, H, W) tile by tile into the array ``field`` of the state store; the
+    same array read back lazily, in the same chunks."""
+    g = zarr.open_group(state, mode="r+")
+    if "field" not in g:
+        g.create_array("field", shape=stack.shape, chunks=(stack.shape[0], grid.rows[0], grid.cols[0]), dtype="float32",
+                       fill_value=np.nan)
+    blocks = stack.to_delayed(optimize_graph=False)
+    tasks = {t.key: dask.delayed(_store_block, pure=True)(state, (t.row0, t.row1, t.col0, t.col1), blocks[0, t.iy, t.ix],
+                                                          dask_key_name=f"dense-field-store-{t.key}-{stack.name}")
+             for t in grid}
+    run_tiles(job, "dense-field", tasks, phase="dense field (post-filter)")
+    return da.from_zarr(g["field"], chunks=stack.chunks, name=f"dense-field-stored-{stack.name}")

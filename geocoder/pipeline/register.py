@@ -418,7 +418,7 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
         summary.dense_rounds = result.rounds
         summary.dense_converged = result.converged
         summary.dense_new_per_round = result.new_per_round
-        field_ = dense_field(result, (dx, dy), opts.postfilter)
+        field_ = dense_field(result, (dx, dy), opts.postfilter, store=True, job=job)
         if opts.lines.enabled:
             with timer("line estimates"):
                 field_ = apply_corrections(field_, (dx, dy), row_corrections(field_, (dx, dy), opts.lines), opts.lines)
