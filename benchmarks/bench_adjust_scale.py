@@ -18,7 +18,7 @@ observations per frame (~1,000,000 at 1,000 frames), solved by :func:`geocoder.a
     5e-5 rad), over rolling terrain.  Each frame gets ~340 random ground points inside it, each
     observed in every frame that sees it (~3 frames).  The adjustment starts from the nominal
     orbit (deviations zero, ~1 px off) with weak priors: 200 m / 2e-3 rad over the frame's half
-    duration for the deviation coefficients (as :mod:`geocoder.adjust.experiments`) and ~1 px
+    duration for the deviation coefficients (as :mod:`geocoder.simulate.adjust_experiments`) and ~1 px
     (100 ``param_steps``) for the orbit and time parameters.
 
 Both: every 20th point is a control point (1 m a-priori sigma), the others are tie points with

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from geocoder.adjust.experiments import (
+from geocoder.simulate.adjust_experiments import (
     block_setup,
     block_table,
     blunder_case,

@@ -1,6 +1,6 @@
 """Blocks of frames: from point sets to an adjustment problem, and accuracy at check points.
 
-Glue between the simulator's point sets (or files) and :func:`geocoder.adjust.solver.adjust`:
+Glue between point sets (:mod:`geocoder.adjust.observations`, from the simulator or from files) and :func:`geocoder.adjust.solver.adjust`:
 ground points are indexed by id, control points get a prior weight of ``1/sigma^2`` per
 axis (infinite sigma -> free), tie points are free except, optionally, their height.
 Check points never enter the adjustment: :func:`check_errors` intersects their image
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..simulate.points import GroundPoints, ImageObservations
-from ..simulate.satellite import ecef_to_geodetic, geodetic_to_ecef
-from .solver import Frame, Problem
+from ..geodesy import ecef_to_geodetic, geodetic_to_ecef
+from .observations import GroundPoints, ImageObservations
+from .problem import Frame, Problem
 
 
 def ground_weights(sigma: np.ndarray) -> np.ndarray:

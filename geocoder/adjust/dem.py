@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..simulate.satellite import WGS84_A, WGS84_E2, ecef_to_geodetic
+from ..geodesy import WGS84_A, WGS84_E2, ecef_to_geodetic
 
 __all__ = ["DEM"]
 

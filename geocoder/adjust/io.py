@@ -7,14 +7,17 @@
   (an edge point's weight is singular; it is never inverted).
 - frames JSON: ``{"frames": [{"id": ..., "model": "polynomial" | "linescanner" | "rpc", ...}]}``
   with, per model, ``order, origin_lat, origin_lon, scale`` (polynomial), ``scanner`` (the
-  simulator's LineScanner fields) and ``free`` (a parameter-set name or a 32-long list of
+  LineScanner fields) and ``free`` (a parameter-set name or a 32-long list of
   booleans) and optional ``prior_sigma`` (linescanner), or the RPC00B fields under ``rpc``;
   ``params`` (optional start values) for any model.
+
+Every writer writes its file whole (:func:`write_text`): a failure leaves an earlier file intact.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 from dataclasses import asdict
@@ -22,10 +25,12 @@ from dataclasses import asdict
 import numpy as np
 
 from ..errors import InputError
-from ..simulate.points import GroundPoints, ImageObservations
-from ..simulate.satellite import LineScanner, Orbit
+from ..storage import remove, temporary_sibling
+from .linescanner_geometry import LineScanner
 from .models import RPC, LineScannerModel, Polynomial2D, RPCModel
-from .solver import Frame
+from .observations import GroundPoints, ImageObservations
+from .orbit import Orbit
+from .problem import Frame
 
 POINT_FIELDS = ["id", "role", "X", "Y", "Z", "sigma_X", "sigma_Y", "sigma_Z"]
 OBS_FIELDS = ["frame", "point", "x", "y", "w_xx", "w_xy", "w_yy"]
@@ -40,6 +45,39 @@ def _rows(path: str, fields: list[str]) -> list[dict]:
         if missing:
             raise InputError(path, f"missing column(s) {missing}; expected {fields}")
         return list(reader)
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    """Write a whole text file atomically: readers see the old file or the new one, never a part.
+
+    The text goes into a hidden sibling (:func:`geocoder.storage.temporary_sibling`) that
+    replaces ``path`` (``os.replace``) only when written and closed; on any failure the
+    sibling is removed and an earlier ``path`` is left as it was.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file to write (a local path).
+    text : str
+        Its whole content (UTF-8; newlines written as given).
+    """
+    final = os.fspath(path)
+    tmp = temporary_sibling(final)
+    try:
+        with open(tmp, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+        os.replace(tmp, final)
+    except BaseException:
+        remove(tmp)
+        raise
+
+
+def _csv_text(header: list[str], rows) -> str:
+    buf = io.StringIO(newline="")
+    w = csv.writer(buf)
+    w.writerow(header)
+    w.writerows(rows)
+    return buf.getvalue()
 
 
 def _float(v: str) -> float:
@@ -61,11 +99,9 @@ def read_points(path: str) -> GroundPoints:
 
 def write_points(path: str, points: GroundPoints, xyz: np.ndarray | None = None) -> None:
     xyz = points.xyz if xyz is None else xyz
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(POINT_FIELDS)
-        for i in range(len(points)):
-            w.writerow([int(points.id[i]), points.role[i], *(f"{v:.4f}" for v in xyz[i]), *points.sigma[i]])
+    rows = ([int(points.id[i]), points.role[i], *(f"{v:.4f}" for v in xyz[i]), *points.sigma[i]]
+            for i in range(len(points)))
+    write_text(path, _csv_text(POINT_FIELDS, rows))
 
 
 def read_observations(path: str) -> ImageObservations:
@@ -81,13 +117,10 @@ def read_observations(path: str) -> ImageObservations:
 
 
 def write_observations(path: str, obs: ImageObservations) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(OBS_FIELDS)
-        for i in range(len(obs)):
-            W = obs.weight[i]
-            w.writerow([int(obs.frame[i]), int(obs.point[i]), f"{obs.col[i]:.4f}", f"{obs.row[i]:.4f}",
-                        W[0, 0], W[0, 1], W[1, 1]])
+    W = obs.weight
+    rows = ([int(obs.frame[i]), int(obs.point[i]), f"{obs.col[i]:.4f}", f"{obs.row[i]:.4f}", W[i, 0, 0], W[i, 0, 1],
+             W[i, 1, 1]] for i in range(len(obs)))
+    write_text(path, _csv_text(OBS_FIELDS, rows))
 
 
 def scanner_to_dict(s: LineScanner) -> dict:
@@ -141,5 +174,4 @@ def write_frames(path: str, specs: list[dict], params: list[np.ndarray], covaria
         if covariances is not None and covariances[k] is not None:
             e["param_sigma"] = np.sqrt(np.abs(np.diag(covariances[k]))).tolist()
         out.append(e)
-    with open(path, "w") as f:
-        json.dump({"frames": out}, f, indent=1)
+    write_text(path, json.dumps({"frames": out}, indent=1))

@@ -1,6 +1,6 @@
 """Exact Jacobians of the rigorous line scanner (seed 000 eqs 1-3), vectorised over points.
 
-The geometry of :class:`geocoder.simulate.satellite.LineScanner` is re-evaluated at *fixed*
+The geometry of :class:`geocoder.adjust.linescanner_geometry.LineScanner` is re-evaluated at *fixed*
 acquisition times with forward-mode jets (:mod:`geocoder.adjust.jet`) along 16 directions::
 
     0..5   a, e, i, raan, arg_perigee, mean_anomaly0   (Keplerian elements)
@@ -29,9 +29,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..simulate.satellite import GM_EARTH, OMEGA_EARTH, LineScanner
+from ..geodesy import GM_EARTH, OMEGA_EARTH
 from . import jet
 from .jet import Jet
+from .linescanner_geometry import LineScanner
 
 __all__ = ["N_DIRECTIONS", "image_jets", "line_scanner_jacobians"]
 

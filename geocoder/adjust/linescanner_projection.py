@@ -1,7 +1,7 @@
 """Ground-to-image projection of the line scanner for the adjustment: lean, warm-started.
 
 The same geometry and the same Newton iteration on the along-track collinearity ratio
-``F(t) = x_s / z_s`` as :meth:`geocoder.simulate.satellite.LineScanner.ground_to_image`, with
+``F(t) = x_s / z_s`` as :meth:`geocoder.adjust.linescanner_geometry.LineScanner.ground_to_image`, with
 three savings that matter when every frame of a block is projected at every iteration:
 
 * the sensor-frame vector ``M(t) (P - S(t))`` is formed from the orbital axes and the three
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..simulate.satellite import LineScanner
+from .linescanner_geometry import LineScanner
 
 __all__ = ["project_with_times", "sensor_vector"]
 

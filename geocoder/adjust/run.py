@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 
@@ -12,8 +13,9 @@ from ..errors import InputError
 from ..outputs import check_output, commit_output, write_marker
 from ..storage import remove, temporary_sibling
 from .block import build_problem, check_errors
-from .io import read_frames, read_observations, read_points, write_frames, write_points
-from .solver import AdjustOptions, adjust
+from .driver import adjust
+from .io import read_frames, read_observations, read_points, write_frames, write_points, write_text
+from .problem import AdjustOptions
 
 
 def residual_svg(path: str, xy: np.ndarray, res: np.ndarray, active: np.ndarray, *, width: int = 600) -> None:
@@ -32,10 +34,9 @@ def residual_svg(path: str, xy: np.ndarray, res: np.ndarray, active: np.ndarray,
         lines.append(f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x0 + dx * k * s:.1f}" y2="{y0 + dy * k * s:.1f}" '
                      f'stroke="{colour}" stroke-width="1.2"/><circle cx="{x0:.1f}" cy="{y0:.1f}" r="1.5" fill="{colour}"/>')
     height = int(40 + (hi[1] - lo[1]) * s)
-    with open(path, "w") as f:
-        f.write(f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}">'
-                f'<text x="20" y="14" font-size="11">residuals x{k:.0f} (largest {big:.2f} px); red = rejected</text>'
-                + "".join(lines) + "</svg>")
+    write_text(path, f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}">'
+               f'<text x="20" y="14" font-size="11">residuals x{k:.0f} (largest {big:.2f} px); red = rejected</text>'
+               + "".join(lines) + "</svg>")
 
 
 def adjust_files(frames_path: str, points_path: str, obs_path: str, out: str, *, robust: bool = False,
@@ -48,7 +49,8 @@ def adjust_files(frames_path: str, points_path: str, obs_path: str, out: str, *,
     adjustment is gathered on one node: this process, or with ``client`` / ``scheduler`` one
     task on a worker of that cluster (the files must be on a filesystem the worker sees).
 
-    ``out`` is written whole: into a hidden sibling, renamed into place when complete.
+    ``out`` is written whole: into a hidden sibling, renamed into place when complete; a
+    failure before that (an error, a full disk) leaves an earlier ``out`` as it was.
 
     Parameters
     ----------
@@ -132,15 +134,16 @@ def _write_outputs(out, frames, specs, used, check, obs, result) -> dict:
     write_points(os.path.join(out, "points.csv"), used, result.ground)
     keep = np.isin(obs.point, used.id)
     o = obs.subset(keep)
-    with open(os.path.join(out, "residuals.csv"), "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["frame", "point", "x", "y", "vx", "vy", "normalized", "redundancy", "active"])
-        nr = result.normalized_residuals if result.normalized_residuals is not None else np.full(len(o), np.nan)
-        rd = result.redundancy if result.redundancy is not None else np.full(len(o), np.nan)
-        rd = rd.sum(axis=1) if np.ndim(rd) == 2 else rd
-        for i in range(len(o)):
-            w.writerow([int(o.frame[i]), int(o.point[i]), o.col[i], o.row[i], *result.residuals[i], nr[i], rd[i],
-                        bool(result.obs_active[i])])
+    buf = io.StringIO(newline="")
+    w = csv.writer(buf)
+    w.writerow(["frame", "point", "x", "y", "vx", "vy", "normalized", "redundancy", "active"])
+    nr = result.normalized_residuals if result.normalized_residuals is not None else np.full(len(o), np.nan)
+    rd = result.redundancy if result.redundancy is not None else np.full(len(o), np.nan)
+    rd = rd.sum(axis=1) if np.ndim(rd) == 2 else rd
+    for i in range(len(o)):
+        w.writerow([int(o.frame[i]), int(o.point[i]), o.col[i], o.row[i], *result.residuals[i], nr[i], rd[i],
+                    bool(result.obs_active[i])])
+    write_text(os.path.join(out, "residuals.csv"), buf.getvalue())
     rms_frame = []
     for k in range(len(frames)):
         m = (o.frame == k) & result.obs_active
@@ -157,16 +160,15 @@ def _write_outputs(out, frames, specs, used, check, obs, result) -> dict:
         "check_rms_m": None if checks is None else [checks.rms(k) for k in range(len(frames))],
         "check_rms_total_m": None if checks is None else checks.rms(),
     }
-    with open(os.path.join(out, "report.md"), "w") as f:
-        f.write(f"# Block adjustment\n\n{len(frames)} frame(s), {len(used)} ground points, {len(o)} observations "
-                f"({summary['rejected']} rejected); sigma0 = {result.sigma0:.3f}; {result.iterations} iterations"
-                f" ({'converged' if result.converged else 'not converged'}); solver {result.solver}.\n\n")
-        f.write("| frame | RMS residual (px) | check RMS (m) |\n|---:|---:|---:|\n")
-        for k in range(len(frames)):
-            c = "" if checks is None else f"{checks.rms(k):.2f}"
-            f.write(f"| {k} | {rms_frame[k]:.3f} | {c} |\n")
-        if checks is not None:
-            f.write(f"\nCheck points overall: {checks.rms():.2f} m RMS over {np.isfinite(checks.error).sum()} observations.\n")
-    with open(os.path.join(out, "summary.json"), "w") as f:
-        json.dump(summary, f, indent=1)
+    report = [f"# Block adjustment\n\n{len(frames)} frame(s), {len(used)} ground points, {len(o)} observations "
+              f"({summary['rejected']} rejected); sigma0 = {result.sigma0:.3f}; {result.iterations} iterations"
+              f" ({'converged' if result.converged else 'not converged'}); solver {result.solver}.\n\n",
+              "| frame | RMS residual (px) | check RMS (m) |\n|---:|---:|---:|\n"]
+    for k in range(len(frames)):
+        c = "" if checks is None else f"{checks.rms(k):.2f}"
+        report.append(f"| {k} | {rms_frame[k]:.3f} | {c} |\n")
+    if checks is not None:
+        report.append(f"\nCheck points overall: {checks.rms():.2f} m RMS over {np.isfinite(checks.error).sum()} observations.\n")
+    write_text(os.path.join(out, "report.md"), "".join(report))
+    write_text(os.path.join(out, "summary.json"), json.dumps(summary, indent=1))
     return summary

@@ -5,6 +5,9 @@ attitude deviations) and :mod:`geocoder.simulate.points`. The collinearity model
 the nominal orbit (deviations zero) and estimates the deviation polynomials; the polynomial
 model is a 2-D polynomial from the tangent plane to the image. Accuracy is the horizontal
 RMS at check points, mono-plotted through the adjusted model at their a-priori heights.
+
+The experiments live with the simulator (they need its truth); the adjustment they run
+(:mod:`geocoder.adjust`) does not import the simulator.  Formerly ``geocoder.adjust.experiments``.
 """
 
 from __future__ import annotations
@@ -13,7 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..simulate.points import (
+from ..adjust.block import CheckErrors, build_problem, check_errors
+from ..adjust.dem import DEM
+from ..adjust.models import LineScannerModel, Polynomial2D
+from ..adjust.solver import AdjustOptions, AdjustResult, Frame, adjust
+from .points import (
     GroundPoints,
     ImageObservations,
     block_of_strips,
@@ -22,11 +29,7 @@ from ..simulate.points import (
     perturb_ground,
     tie_points,
 )
-from ..simulate.satellite import LineScanner, ecef_to_geodetic, landsat_mss_like
-from .block import CheckErrors, build_problem, check_errors
-from .dem import DEM
-from .models import LineScannerModel, Polynomial2D
-from .solver import AdjustOptions, AdjustResult, Frame, adjust
+from .satellite import LineScanner, ecef_to_geodetic, landsat_mss_like
 
 #: a-priori standard deviations of the deviation coefficients (position m, attitude rad) over
 #: the frame's half duration T: coefficient k gets sigma / T^k
@@ -321,7 +324,7 @@ def edge_table(*, counts=(25, 41, 81), configurations=(1, 4, 9, 10), replicates:
     errors (true image positions, true heights), i.e. the error of the adjusted model alone, which
     the check data's noise floor (~55-60 m) would otherwise hide at many pairs.
     """
-    from ..simulate.points import edge_points
+    from .points import edge_points
 
     rows, cols, swath = int(2340 * size), int(3240 * size), 185e3 * size
     truth = landsat_mss_like(rows=rows, cols=cols, swath=swath, seed=seed)
