@@ -5,6 +5,7 @@ from importlib.metadata import PackageNotFoundError, version
 from . import accessor  # noqa: F401  (registers the .geocoder accessor on DataArray and Dataset)
 from .errors import GeocoderError, InputError, MatchingError
 from .options import get_option, get_options, set_options
+from .pipeline.compose import compose
 from .pipeline.register import RegisterOptions, register
 from .reporting import report
 from .scene import ingest, open_scene
@@ -22,6 +23,7 @@ __all__ = [
     "RegisterOptions",
     "Status",
     "__version__",
+    "compose",
     "get_option",
     "get_options",
     "ingest",

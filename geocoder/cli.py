@@ -1,4 +1,4 @@
-"""Command line: ``geocoder register | ingest | export | mosaic | report | simulate | adjust | demo | cluster up|down``.
+"""Command line: ``geocoder register | compose | ingest | export | mosaic | report | simulate | adjust | demo | cluster up|down``.
 
 Every command calls the same library functions a notebook would; ``--scheduler`` (default
 ``DASK_SCHEDULER_ADDRESS``) chooses a running Dask cluster, otherwise a local one is started.
@@ -142,10 +142,14 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
 @click.option("--nodata", default=None, type=float, help="Extra nodata value of BASE.")
 @click.option("--dist-nodata", default=None, type=float, help="Extra nodata value of DISTORTED.")
 @click.option("--restart", is_flag=True, help="Do not resume an interrupted run of the same job; start afresh.")
+@click.option("--via", default=None,
+              help="Intermediate look MIDDLE: register MIDDLE onto BASE and DISTORTED onto MIDDLE, compose the two "
+                   "fields and resample DISTORTED once through the chain (seed 003 sec. 10).")
 @overwrite_option
 @scheduler_option
 @_friendly
-def register(base, distorted, out, resampling, tile, band, dist_band, order, dense, nodata, dist_nodata, restart, overwrite, scheduler):
+def register(base, distorted, out, resampling, tile, band, dist_band, order, dense, nodata, dist_nodata, restart, via, overwrite,
+             scheduler):
     """Register DISTORTED onto the grid of BASE and write OUT (Zarr).
 
     An interrupted run leaves its finished tiles next to OUT; running the same command
@@ -157,9 +161,50 @@ def register(base, distorted, out, resampling, tile, band, dist_band, order, den
     ds = run(
         base, distorted, out=out, resampling=resampling, tile=tile, scheduler=scheduler,
         band=band, dist_band=dist_band, order=order, dense=dense, nodata=nodata, dist_nodata=dist_nodata,
-        resume=not restart, overwrite=overwrite,
+        resume=not restart, overwrite=overwrite, via=via,
     )
+    if via is not None:
+        _print_chain(ds)
     _print_summary(ds, time.perf_counter() - t0, out)
+
+
+def _print_chain(ds) -> None:
+    import json
+
+    from .pipeline.register import RegisterSummary
+
+    chain = json.loads(ds.attrs["chain"])
+    for leg, what in (("first", f"{chain['via']} onto the base"), ("second", f"the distorted image onto {chain['via']}")):
+        click.echo(f"[{leg} leg: {what}]")
+        for line in RegisterSummary(**chain[leg]).lines():
+            click.echo(f"  {line}")
+    click.echo("[composed chain]")
+
+
+@main.command()
+@click.argument("ab")
+@click.argument("bc")
+@click.option("--out", required=True, help="Output Zarr store of the composed field (committed atomically).")
+@tile_option
+@overwrite_option
+@scheduler_option
+@_friendly
+def compose(ab, bc, out, tile, overwrite, scheduler):
+    """Compose the displacement fields AB (register A B) and BC (register B C) into A onto C, written to OUT.
+
+    The second field is interpolated at the positions the first gives; sigma is propagated
+    to first order and the status is the worse of the two (outside where the chain breaks).
+    """
+    import numpy as np
+
+    from .pipeline.compose import compose as run
+    from .status import Status
+
+    t0 = time.perf_counter()
+    ds = run(ab, bc, out=out, tile=tile, scheduler=scheduler, overwrite=overwrite)
+    counts = np.bincount(ds.status.values.ravel(), minlength=len(Status))
+    click.echo("pixels: " + ", ".join(f"{Status(i).name.lower()} {int(n)}" for i, n in enumerate(counts) if n))
+    click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
 
 
 def _print_summary(ds, seconds: float, out: str | None) -> None:

@@ -293,6 +293,7 @@ def register(
     resume: bool = True,
     overwrite: bool = False,
     show_progress: Progress | bool | None = None,
+    via=None,
 ) -> xr.Dataset:
     """Register ``distorted`` onto the grid of ``base``.
 
@@ -338,6 +339,10 @@ def register(
     show_progress : Progress or bool, optional
         Progress receiver (True: a bar per phase on standard error). Default
         :func:`geocoder.get_option` ``("progress")``; None keeps the caller's display.
+    via : str, PathLike or xarray.DataArray, optional
+        An intermediate look: register ``via`` onto ``base`` and ``distorted`` onto ``via``,
+        compose the two fields and resample the original ``distorted`` once through the
+        chain (:func:`geocoder.pipeline.compose.register_via`, seed 003 sec. 10).
 
     Returns
     -------
@@ -347,6 +352,13 @@ def register(
         in the ``tiepoints`` group of ``out`` and in ``Dataset.attrs`` as ``tiepoints``
         when computed in memory.
     """
+    if via is not None:
+        from .compose import register_via
+
+        return register_via(base, distorted, via, out=out, resampling=resampling, tile=tile, client=client,
+                            scheduler=scheduler, band=band, dist_band=dist_band, order=order, dense=dense, nodata=nodata,
+                            dist_nodata=dist_nodata, options=options, resume=resume, overwrite=overwrite,
+                            show_progress=show_progress)
     given = {"tile": tile, "resampling": resampling, "band": band, "dist_band": dist_band, "order": order, "dense": dense}
     opts = replace(options or RegisterOptions(), **{k: v for k, v in given.items() if v is not None})
     if opts.tile is None:  # neither the keyword nor ``options``: geocoder.set_options, Dask config, 512
