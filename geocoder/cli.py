@@ -305,12 +305,17 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
               help="Refine every control scene pixel by pixel against the reference (scan-line turbulence).")
 @click.option("--report", default=None,
               help="Also write a report directory: report.md with the overlap graph, adjustment and seams, plus figures.")
+@click.option("--model", "model", default="polynomial", show_default=True,
+              type=click.Choice(["polynomial", "linescanner", "rpc"]),
+              help="Every scene's model: a polynomial of map coordinates (--order), the line scanner it carries, or its RPCs "
+                   "with an affine bias correction.")
+@click.option("--dem", default=None, help="DEM (m): ground heights of the points and of every output pixel (default 0).")
 @tile_option
 @overwrite_option
 @scheduler_option
 @_friendly
-def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, resampling, balance, cog, dense, report, tile,
-           overwrite, scheduler):
+def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, resampling, balance, cog, dense, report, model,
+           dem, tile, overwrite, scheduler):
     """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
     from .mosaic import MosaicSummary
     from .mosaic import mosaic as run
@@ -325,7 +330,7 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, re
         bad = [k for k in control if not 0 <= k < len(scenes)]
         if bad:
             raise click.BadParameter(f"scene(s) {bad} do not exist (0..{len(scenes) - 1})", param_hint="--control-scenes")
-    if report is not None:  # refused now, not after the job
+    if report is not None:  # refused now, not after the job (the library checks it too)
         from .outputs import check_output
         from .reporting import require_matplotlib
 
@@ -334,17 +339,14 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, re
     t0 = time.perf_counter()
     ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
              feather=feather, seams=seam_mode, resampling=resampling, balance=balance, scheduler=scheduler,
-             overwrite=overwrite, cog=cog, dense=dense)
+             overwrite=overwrite, cog=cog, dense=dense, model=model, dem=dem, report=report)
     import json
 
     for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():
         click.echo(line)
     click.echo(f"wrote {out}{f' and {cog}' if cog else ''} in {time.perf_counter() - t0:.1f} s")
     if report is not None:
-        from .mosaic.report import write_report
-
-        where = write_report(out, report, overwrite=overwrite)
-        click.echo(f"wrote the report {where}/report.md")
+        click.echo(f"wrote the report {report}/report.md")
 
 
 @main.command("report")

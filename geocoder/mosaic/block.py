@@ -1,16 +1,18 @@
 """The mosaic's block adjustment: control and tie matches -> one :class:`~geocoder.adjust.solver.Problem`.
 
 Each scene is a :class:`~geocoder.adjust.models.MapPolynomial` (map coordinates of the
-output CRS -> scene pixel). Control points are reference matches (known map position, the
-scene pixel observed); tie points are matches between two overlapping scenes (unknown map
-position, observed in both). The problem goes to the existing Schur-reduced solver (seed 000
-eq 5), gathered on one node; heights are held at 0 (the model ignores them).
+output CRS -> scene pixel), or a sensor model of what the scene carries (a line scanner or
+an RPC, :mod:`geocoder.mosaic.sensors`). Control points are reference matches (known map
+position, the scene pixel observed); tie points are matches between two overlapping scenes
+(unknown map position, observed in both). Heights come from a DEM (0 without one): a control
+point's is known, a tie point's is held to the DEM at its position. The problem goes to the
+existing Schur-reduced solver (seed 000 eq 5), gathered on one node.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -65,7 +67,8 @@ def scene_model(order: int, shape: tuple[int, int], to_map: Callable, *, samples
 
 
 def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control: list[Matches], ties: list[Matches], *,
-                  order: int = 2, control_sigma: float = 1e-3, min_sigma: float = 0.02) -> Problem:
+                  order: int = 2, control_sigma: float = 1e-3, min_sigma: float = 0.02, models: list | None = None,
+                  height: Callable | None = None) -> Problem:
     """The block: one frame per scene, one ground point per control or tie match.
 
     Parameters
@@ -84,20 +87,32 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
         reference's pixels are the truth here, their matching error is in the scenes).
     min_sigma : float
         Floor of the matching sigma (pixels) in the observation weights.
+    models : list of (model, params), optional
+        Every scene's sensor model and its start values; default a :class:`MapPolynomial`
+        of ``order`` fitted to ``approx``.
+    height : callable, optional
+        ``height(E, N) -> h``: the DEM; heights are 0 without it.
+
+    Returns
+    -------
+    Problem
     """
+    def heights(e: np.ndarray, n: np.ndarray) -> np.ndarray:
+        return np.zeros(np.shape(e)) if height is None else np.asarray(height(e, n), dtype=np.float64)
+
     frames = []
-    for shape, f in zip(shapes, approx):
-        model, params = scene_model(order, shape, f)
-        frames.append(Frame(model=model, params=params))
+    for k, (shape, f) in enumerate(zip(shapes, approx)):
+        model, params = scene_model(order, shape, f) if models is None else models[k]
+        frames.append(Frame(model=model, params=np.array(params, dtype=np.float64)))
     ground, gweight, ofr, opt, oxy, osig = [], [], [], [], [], []
     wxy = 1.0 / control_sigma**2
-    # the model ignores heights; they are held at 0 with a weight of the order of the point's
-    # other weights, so that its 3 x 3 normal block stays well conditioned
+    # a tie point's height is held to the DEM (or 0) with a sigma of 1 m: the polynomial ignores
+    # it, and the weight keeps the point's 3 x 3 normal block well conditioned
     wz_tie = 1.0
     n = 0
     for c in control:
         m = len(c)
-        ground.append(np.column_stack([c.a, np.zeros(m)]))
+        ground.append(np.column_stack([c.a, heights(c.a[:, 0], c.a[:, 1])]))
         gweight.append(np.broadcast_to(np.diag([wxy, wxy, wxy]), (m, 3, 3)))
         ofr.append(np.full(m, c.j))
         opt.append(n + np.arange(m))
@@ -120,7 +135,7 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
         fresh = np.asarray(fresh, dtype=np.int64)
         if fresh.size:
             ex, ny = approx[t.i](t.a[fresh, 0], t.a[fresh, 1])
-            ground.append(np.column_stack([ex, ny, np.zeros(fresh.size)]))
+            ground.append(np.column_stack([ex, ny, heights(ex, ny)]))
             gweight.append(np.broadcast_to(np.diag([0.0, 0.0, wz_tie]), (fresh.size, 3, 3)))
             ofr.append(np.full(fresh.size, t.i))
             opt.append(ids[fresh])
@@ -145,6 +160,22 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
     )
 
 
-def solve(problem: Problem, *, robust: bool = True) -> AdjustResult:
-    """Adjust the block (robust re-weighting, eq 20b then 22b), covariances when small enough."""
-    return adjust(problem, AdjustOptions(max_iter=20, tol=1e-8, robust=robust, damping=1e-6))
+def solve(problem: Problem, *, robust: bool = True, height: Callable | None = None) -> AdjustResult:
+    """Adjust the block (robust re-weighting, eq 20b then 22b), covariances when small enough.
+
+    With ``height`` (the DEM), the tie points' heights are held to the DEM where the first
+    adjustment put them, and the block is adjusted once more from there.
+    """
+    options = AdjustOptions(max_iter=20, tol=1e-8, robust=robust, damping=1e-6)
+    result = adjust(problem, options)
+    if height is None:
+        return result
+    tie = problem.ground_weight[:, 0, 0] == 0
+    if not tie.any():
+        return result
+    prior = problem.ground_prior.copy()
+    g = result.ground[tie]
+    prior[tie, 2] = height(g[:, 0], g[:, 1])
+    again = replace(problem, frames=[replace(f, params=p) for f, p in zip(problem.frames, result.params)],
+                    ground=result.ground.copy(), ground_prior=prior)
+    return adjust(again, options)

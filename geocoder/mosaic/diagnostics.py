@@ -154,7 +154,8 @@ def seam_table(stats: list[dict], scenes: list[int]) -> list[dict]:
     return rows
 
 
-def seam_errors(source: np.ndarray, transform, models: list, truths: list, shapes: list) -> np.ndarray:
+def seam_errors(source: np.ndarray, transform, models: list, truths: list, shapes: list,
+                heights: np.ndarray | None = None) -> np.ndarray:
     """Geometric mismatch of two scenes along the seams, against known truth (tests, benchmarks).
 
     At every pixel ``p`` whose right or lower neighbour comes from another scene (``a`` and
@@ -173,6 +174,8 @@ def seam_errors(source: np.ndarray, transform, models: list, truths: list, shape
     truths : list of callables
         Per block scene, its true mapping scene pixel -> truth-grid pixel.
     shapes : list of (rows, cols)
+    heights : ndarray, shape (h, w), optional
+        The mosaic's ``height`` layer (a mosaic made with a DEM); 0 without.
 
     Returns
     -------
@@ -186,7 +189,7 @@ def seam_errors(source: np.ndarray, transform, models: list, truths: list, shape
     if r.size == 0:
         return np.zeros(0)
     ex, ny = pixel_to_world(transform, c.astype(np.float64), r.astype(np.float64))
-    ground = np.column_stack([ex, ny, np.zeros(ex.size)])
+    ground = np.column_stack([ex, ny, np.zeros(ex.size) if heights is None else heights[r, c]])
     where = np.full((2, r.size, 2), np.nan)
     for n, ((model, params), truth) in enumerate(zip(models, truths)):
         for side, lab in enumerate((a, b)):

@@ -37,6 +37,7 @@ import xarray as xr
 from affine import Affine
 
 from .. import progress
+from ..adjust.models import RPC
 from ..cog import to_cog
 from ..conventions import georeference
 from ..errors import GeocoderError, InputError
@@ -55,8 +56,11 @@ from ..tiles import TileGrid
 from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
+from .heights import MapDEM, ref_to_scene_prior
+from .projection import project_window
 from .radiometry import seam_step, solve_balance
 from .seamplan import plan_seams, read_labels
+from .sensors import KINDS, model_from_dict, model_to_dict, scene_sensor, sensor_model
 
 log = logging.getLogger("geocoder")
 
@@ -181,7 +185,7 @@ def _shifted(to_ref, origin: tuple[int, int]):
 
 
 def _adjustment_figures(summary: MosaicSummary, problem, result, models: list, shapes: list, to_map: list,
-                        to_out: list) -> None:
+                        to_out: list, dem=None) -> None:
     """Per block scene: precision, observations kept and binned residuals (into ``summary``).
 
     ``to_map`` and ``to_out``: every scene's pixel -> map and pixel -> output pixel mappings
@@ -193,7 +197,8 @@ def _adjustment_figures(summary: MosaicSummary, problem, result, models: list, s
         h, w = shape
         ys, xs = np.meshgrid(np.linspace(0, h - 1, 5), np.linspace(0, w - 1, 5), indexing="ij")
         ex, ny = f(xs.ravel(), ys.ravel())
-        summary.precision_px.append(scene_precision(model, params, covs[n], np.column_stack([ex, ny, np.zeros(ex.size)])))
+        hz = np.zeros(ex.size) if dem is None else dem(ex, ny)
+        summary.precision_px.append(scene_precision(model, params, covs[n], np.column_stack([ex, ny, hz])))
         mine = (problem.obs_frame == n) & result.obs_active
         summary.observations.append(int(mine.sum()))
         bins = residual_bins(problem.obs_xy[mine], result.residuals[mine], shape)
@@ -227,19 +232,20 @@ def _overlap(i_shape, i_to_ref, ref_to_j, j_shape, samples: int = 16) -> float:
 
 
 def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int], located: dict | None,
-              origin: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+              origin: tuple[int, int], heights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Position in one scene of every pixel of an output window: its adjusted model, or its
     dense field where that matched or filled the pixel.
 
-    ``origin``: the output grid's pixel (0, 0) in reference pixels (``col, row``).
+    ``origin``: the output grid's pixel (0, 0) in reference pixels (``col, row``);
+    ``heights``: the window's ground heights (the DEM's; 0 without).
     """
     import zarr
 
     r0, r1, c0, c1 = window
     ys, xs = np.mgrid[r0:r1, c0:c1].astype(np.float64)
     ex, ny = pixel_to_world(transform, xs, ys)
-    xy = model.project(params, np.column_stack([ex.ravel(), ny.ravel(), np.zeros(ex.size)]))
-    x, y = xy[:, 0].reshape(xs.shape), xy[:, 1].reshape(xs.shape)
+    hz = np.zeros(ex.shape) if heights is None else np.asarray(heights, dtype=np.float64).reshape(ex.shape)
+    x, y = project_window(model, params, ex, ny, hz)
     if located is None:
         return x, y
     # the window in the field's frame (reference pixels, offset by the field's origin)
@@ -262,7 +268,7 @@ def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int
 def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
                  shapes: list, feather_px: float, method: str, balance: np.ndarray, fields: list,
                  origin: tuple[int, int], boxes: np.ndarray, seams: dict | None = None,
-                 grid_shape: tuple[int, int] | None = None) -> dict:
+                 grid_shape: tuple[int, int] | None = None, dem=None) -> dict:
     """Compute and write one output tile; returns the pixels covered and its seam statistics.
 
     Only the scenes whose footprint box (``boxes``: ``row0, row1, col0, col1`` in output
@@ -290,12 +296,16 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
     e1, f1 = min(r1 + 1, H), min(c1 + 1, W)  # one more row and column, for the seams at the tile's edge
     ext = (r0, e1, c0, f1)
     near = np.flatnonzero((boxes[:, 0] < e1) & (boxes[:, 1] > r0) & (boxes[:, 2] < f1) & (boxes[:, 3] > c0))
+    heights = None
+    if dem is not None:  # every pixel's ground height, mapped into each scene with it
+        ys, xs = np.mgrid[r0:e1, c0:f1].astype(np.float64)
+        heights = dem(*pixel_to_world(transform, xs, ys))
     nb = readers[0].shape[0] if readers else 1
     values = np.full((near.size, nb, e1 - r0, f1 - c0), np.nan, dtype=np.float32)
     scores = np.full((near.size, e1 - r0, f1 - c0), np.nan)
     for i, k in enumerate(near):
         (model, params), reader, shape = models[k], readers[k], shapes[k]
-        x, y = _scene_xy(model, params, transform, ext, fields[k], origin)
+        x, y = _scene_xy(model, params, transform, ext, fields[k], origin, heights)
         s = centre_score(x, y, shape)
         if not np.any(s <= 1.0):
             continue
@@ -343,6 +353,8 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
     g = zarr.open_group(store, mode="r+")
     g["mosaic"][:, r0:r1, c0:c1] = mosaic[:, : r1 - r0, : c1 - c0]
     g["source"][r0:r1, c0:c1] = source[: r1 - r0, : c1 - c0]
+    if heights is not None:
+        g["height"][r0:r1, c0:c1] = heights[: r1 - r0, : c1 - c0].astype(np.float32)
     return {"covered": int((source[: r1 - r0, : c1 - c0] != NO_SOURCE).sum()), "seams": stats}
 
 
@@ -364,6 +376,9 @@ def mosaic(
     overwrite: bool = False,
     cog: str | os.PathLike | None = None,
     dense: bool = False,
+    model: str = "polynomial",
+    dem: str | os.PathLike | None = None,
+    report: str | os.PathLike | None = None,
     show_progress=None,
 ) -> xr.Dataset:
     """Adjust overlapping scenes as one block on a reference and write one seamless mosaic.
@@ -415,6 +430,23 @@ def mosaic(
         instead of from the model (the line-to-line turbulence of airborne scanners, which
         no polynomial follows). The fields are kept in the store (group ``dense/<n>``);
         scenes without control keep their model.
+    model : {"polynomial", "linescanner", "rpc"}
+        Every scene's model in the block adjustment and the output: a polynomial of map
+        coordinates of ``order``; the line scanner the scene carries (GeoTIFF tag
+        ``GEOCODER_LINESCANNER`` or a ``geocoder simulate`` satellite store), its position
+        and yaw adjusted (:data:`geocoder.mosaic.sensors.LINESCANNER_FREE`); or its RPCs
+        with an affine bias correction in image space. A scene that carries neither RPCs nor
+        a line scanner is placed blind on the reference; with a model that needs what it
+        lacks, an :class:`~geocoder.errors.InputError` names it.
+    dem : str or PathLike, optional
+        DEM (heights in metres, ellipsoidal for the sensor models; reprojected to the
+        reference's CRS if it has another): the ground heights of control and tie points,
+        bilinear, and of every output pixel, which is mapped into each scene with its height.
+        The store then holds ``height (y, x)``. Without it heights are 0.
+    report : str or PathLike, optional
+        Also write the report directory (:func:`geocoder.mosaic.write_report`: Markdown
+        with the overlap graph, the adjustment and the seams, and figures); refused before
+        the job if it exists and geocoder did not write it.
     show_progress : Progress or bool, optional
         Progress receiver, as in :func:`geocoder.register`.
 
@@ -434,6 +466,8 @@ def mosaic(
         raise ValueError(f"order must be 1, 2 or 3, got {order}")
     if seams not in ("least-cost", "centre"):
         raise ValueError(f"seams must be 'least-cost' or 'centre', got {seams!r}")
+    if model not in KINDS:
+        raise ValueError(f"model must be one of {', '.join(KINDS)}, got {model!r}")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
     if output_tile is None:
         output_tile = tile
@@ -444,8 +478,21 @@ def mosaic(
         out = check_output(out, inputs=(*scenes, reference), overwrite=overwrite)
     if cog is not None:  # refused now, not after the job
         check_output(cog, inputs=(*scenes, reference, *([out] if out is not None else [])), overwrite=overwrite)
+    if report is not None:
+        from ..reporting import require_matplotlib
+
+        require_matplotlib()
+        check_output(report, inputs=(*scenes, reference, *([out] if out is not None else []), *([cog] if cog else [])),
+                     overwrite=overwrite, option="report")
     ref = open_scene(reference, chunks=tile, grid=True)
     opened = [open_scene(s, chunks=tile) for s in scenes]
+    # what every scene carries (its footprint; the model when asked for): refused now, naming the scene
+    carried = [scene_sensor(s, model) if model != "polynomial" else _carried(s) for s in scenes]
+    if model != "polynomial" and not ref.attrs.get("georeferenced"):
+        raise InputError(reference, f"is not georeferenced: the {model} model needs the reference's CRS")
+    dem_scene = None
+    if dem is not None:
+        dem_scene = _open_dem(dem, ref, tile)
     bands = {s.sizes["band"] for s in opened}
     if len(bands) != 1:
         raise InputError(scenes[0], f"the scenes have different band counts {sorted(bands)}; give scenes with the same bands")
@@ -454,7 +501,8 @@ def mosaic(
     timer = _Timer(summary)  # type: ignore[arg-type]
     allowed = set(range(len(scenes)) if control_scenes is None else control_scenes)
     key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile, output_tile=output_tile,
-                      control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance, dense=dense)
+                      control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance, dense=dense,
+                      model=model, dem=None if dem is None else str(dem))
     job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
             dask_client(client, scheduler) as c:
@@ -463,9 +511,19 @@ def mosaic(
         with timer("ingest"):
             ref = _ingest(job, "reference", ref, tile, c)
             opened = [_ingest(job, f"scene-{k}", s, tile, c) for k, s in enumerate(opened)]
+            heights = None
+            if dem_scene is not None:
+                dem_scene = _ingest(job, "dem", dem_scene, tile, c)
+                heights = MapDEM(job.file("dem.zarr"), scene_transform(dem_scene), tile)
         ref_reader = WindowReader(job.file("reference.zarr"))
         readers = [WindowReader(job.file(f"scene-{k}.zarr")) for k in range(len(opened))]
         shapes = [(s.sizes["y"], s.sizes["x"]) for s in opened]
+        crs_wkt = ref.rio.crs.to_wkt() if ref.attrs.get("georeferenced") else None
+        sensors = [None if s is None or crs_wkt is None else sensor_model("rpc" if isinstance(s, RPC) else "linescanner", s, crs_wkt)
+                   for s in carried]
+        ref_shape = (ref.sizes["y"], ref.sizes["x"])
+        priors = [None if m is None else ref_to_scene_prior(m, m.initial_params(), transform, ref_shape, shapes[k], heights)
+                  for k, m in enumerate(sensors)]
         threads = _threads(c)
         with timer("interest points"):
             names = ["reference", *(f"scene-{k}" for k in range(len(opened)))]
@@ -477,7 +535,7 @@ def mosaic(
         with timer("control points"):
             found = _concurrently(
                 lambda k: _match(job, f"ref-{k}", key, ref, opened[k], ref_reader, readers[k], opts,
-                                 points=(ref_points, points[k])),
+                                 points=(ref_points, points[k]), prior=priors[k]),
                 list(range(len(opened))), "scenes on the reference", threads)
             for k, result in enumerate(found):
                 if isinstance(result, GeocoderError):
@@ -525,9 +583,10 @@ def mosaic(
                 [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
                 [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
                 [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
-                order=order,
+                order=order, height=heights,
+                models=None if model == "polynomial" else [(sensors[k], sensors[k].initial_params()) for k in block],
             )
-            result = job.cached("adjustment", lambda: solve(problem))
+            result = job.cached("adjustment", lambda: solve(problem, height=heights))
         summary.sigma0, summary.iterations = float(result.sigma0), int(result.iterations)
         rays = np.bincount(np.bincount(problem.obs_point))
         summary.rays = {str(k): int(v) for k, v in enumerate(rays) if v and k}
@@ -545,9 +604,9 @@ def mosaic(
                     [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
                     nbands)
         ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], output_tile,
-                                               opened[0].sizes["band"])
+                                               opened[0].sizes["band"], heights=heights is not None)
         summary.shape = (ds.sizes["y"], ds.sizes["x"])
-        ds.attrs.update(_attrs(summary, block, models, order, gains))
+        ds.attrs.update(_attrs(summary, block, models, gains))
         store = job.file("output.zarr")
         if not job.done("output-created"):
             ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
@@ -558,7 +617,7 @@ def mosaic(
                 todo = [n for n, k in enumerate(block) if k in allowed and k in ref_tp]
                 done = _concurrently(
                     lambda n: _refine(job, key, store, n, ref, ref_reader, readers[block[n]], models[n], ref_tp[block[n]],
-                                      to_ref[block[n]], shapes[block[n]], transform, opts),
+                                      to_ref[block[n]], shapes[block[n]], transform, opts, heights),
                     todo, "dense refinement (scenes)", threads)
                 for n, f in zip(todo, done):
                     fields[n] = f
@@ -566,7 +625,8 @@ def mosaic(
         boxes = np.array([_footprint_box(to_ref[k], shapes[k], origin) for k in block])
         summary.footprints = [footprint_outline(_shifted(to_ref[k], origin), shapes[k]) for k in block]
         _adjustment_figures(summary, problem, result, models, [shapes[k] for k in block],
-                            [_to_map(to_ref[k], transform) for k in block], [_shifted(to_ref[k], origin) for k in block])
+                            [_to_map(to_ref[k], transform) for k in block], [_shifted(to_ref[k], origin) for k in block],
+                            heights)
         grid_shape = (ds.sizes["y"], ds.sizes["x"])
         plan = None
         block_pairs = [(index[p["i"]], index[p["j"]]) for p in summary.pairs
@@ -574,19 +634,19 @@ def mosaic(
         if seams == "least-cost":
             with timer("seams"):
                 plan = plan_seams(job, store, grid_shape, output_tile, out_transform, models, [readers[k] for k in block],
-                                  [shapes[k] for k in block], gains, boxes, block_pairs)
+                                  [shapes[k] for k in block], gains, boxes, block_pairs, dem=heights)
                 summary.seam_cells_moved = plan.pop("changed")
         with timer("mosaic"):
             tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
                 store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
-                [shapes[k] for k in block], feather, resampling, gains, fields, origin, boxes, plan, grid_shape)
+                [shapes[k] for k in block], feather, resampling, gains, fields, origin, boxes, plan, grid_shape, heights)
                 for t in grid}
             done = job.run_tiles("mosaic", tasks, phase="mosaic tiles")
         _seam_figures(summary, [d["seams"] for d in done.values()], block, problem, result)
         import zarr
 
         zarr.open_group(store, mode="r+").attrs.update({
-            **_attrs(summary, block, models, order, gains),
+            **_attrs(summary, block, models, gains),
             "dense_fields": json.dumps([None if f is None else {"group": f"dense/{n}", "row0": f["row0"], "col0": f["col0"],
                                                                 "shape": list(f["shape"])} for n, f in enumerate(fields)]),
             "reference_origin": json.dumps(list(origin)),
@@ -597,10 +657,16 @@ def mosaic(
                        overwrite=overwrite)
         if out is None:
             result_ds = xr.open_zarr(store, decode_coords="all", consolidated=False).load()
-            return result_ds
-        write_overviews(store, client=c)
-        commit_output(store, out, overwrite=overwrite)
-    return xr.open_zarr(out, decode_coords="all", consolidated=False)
+        else:
+            write_overviews(store, client=c)
+            commit_output(store, out, overwrite=overwrite)
+    if out is not None:
+        result_ds = xr.open_zarr(out, decode_coords="all", consolidated=False)
+    if report is not None:
+        from .report import write_report
+
+        write_report(out if out is not None else result_ds, report, overwrite=overwrite)
+    return result_ds
 
 
 def sample_points(reader: WindowReader, x: np.ndarray, y: np.ndarray, tile: int, *, radius: int = 3) -> np.ndarray:
@@ -683,7 +749,7 @@ def _footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], marg
 
 
 def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, model, tp, to_ref, shape,
-            transform: Affine, opts: RegisterOptions) -> dict | None:
+            transform: Affine, opts: RegisterOptions, dem=None) -> dict | None:
     """Dense field of block scene ``n`` against the reference, written to group ``dense/<n>`` of
     ``store`` on the reference tiles its footprint touches; its location (see :func:`_scene_xy`)."""
     from ..pipeline.dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
@@ -697,7 +763,7 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
         sy, sx = np.mgrid[0 : h - 1 : 33j, 0 : w - 1 : 33j]
         rx, ry = to_ref(sx.ravel(), sy.ravel())
         ex, ny = pixel_to_world(transform, rx, ry)
-        xy = model[0].project(model[1], np.column_stack([ex, ny, np.zeros(ex.size)]))
+        xy = model[0].project(model[1], np.column_stack([ex, ny, np.zeros(ex.size) if dem is None else dem(ex, ny)]))
         mapping = fit_polymap(rx, ry, xy[:, 0], xy[:, 1], order=3, robust=False)
         chunks = ref.data.chunks[1:]
         grid = TileGrid.from_chunks(chunks)
@@ -796,18 +862,20 @@ def scene_positions(ds: xr.Dataset, store: str | os.PathLike) -> list[tuple[np.n
     -------
     list of tuple of ndarray
         Per scene (``attrs["scenes"]`` order), the column and row of every output pixel in
-        the scene: from its adjusted model, or from its dense field where it was refined.
+        the scene: from its adjusted model (at the ``height`` layer's heights, if the
+        mosaic has one), or from its dense field where it was refined.
     """
     models = load_models(ds)
     fields = json.loads(ds.attrs.get("dense_fields", "null")) or [None] * len(models)
     transform = ds.rio.transform()
     ref = json.loads(ds.attrs.get("reference_origin", "[0, 0]"))
     window = (0, ds.sizes["y"], 0, ds.sizes["x"])
+    heights = np.asarray(ds["height"].values, dtype=np.float64) if "height" in ds else None
     out = []
     for (model, params), f in zip(models, fields):
         if f is not None:
             f = {**f, "store": f"{os.fspath(store)}/{f['group']}"}
-        out.append(_scene_xy(model, params, transform, window, f, tuple(ref)))
+        out.append(_scene_xy(model, params, transform, window, f, tuple(ref), heights))
     return out
 
 
@@ -850,7 +918,7 @@ def _concurrently(fn, items: list, phase: str, threads: int) -> list:
     return results
 
 
-def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nbands: int):
+def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nbands: int, heights: bool = False):
     """Empty output dataset on the reference's pixel grid covering every scene's footprint."""
     corners = []
     for f, (h, w) in zip(to_ref, shapes):
@@ -876,19 +944,21 @@ def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nband
         coords={"band": np.arange(1, nbands + 1), "y": ys, "x": xs},
     )
     ds["mosaic"].attrs["long_name"] = "mosaic of the block's scenes"
+    if heights:
+        ds["height"] = (("y", "x"), da.full((height, width), np.nan, dtype=np.float32, chunks=chunks[1:]),
+                        {"long_name": "ground height of the pixel (the DEM's, bilinear)", "units": "m"})
     if ref.attrs.get("georeferenced"):
         ds = georeference(ds, ref.rio.crs, transform)
     return ds, grid, transform
 
 
-def _attrs(summary: MosaicSummary, block: list[int], models: list, order: int, gains: np.ndarray) -> dict:
+def _attrs(summary: MosaicSummary, block: list[int], models: list, gains: np.ndarray) -> dict:
     from dataclasses import asdict
 
     return {
         "radiometry": json.dumps(np.asarray(gains).tolist()),
         "scenes": json.dumps([summary.scenes[k] for k in block]),
-        "models": json.dumps([{"order": order, "origin": m.origin[:2].tolist(), "scale": m.scale, "params": np.asarray(p).tolist()}
-                              for m, p in models]),
+        "models": json.dumps([model_to_dict(m, p) for m, p in models]),
         "summary": json.dumps(asdict(summary), default=float),
         **product_attrs("mosaic"),
     }
@@ -905,12 +975,39 @@ def load_models(ds: xr.Dataset) -> list:
     Returns
     -------
     list of tuple
-        ``(MapPolynomial, params)`` per scene, in ``attrs["scenes"]`` order.
+        ``(model, params)`` per scene, in ``attrs["scenes"]`` order: a
+        :class:`~geocoder.adjust.models.MapPolynomial`, or a
+        :class:`~geocoder.mosaic.sensors.MapGround` line scanner or RPC; all map ground
+        ``(E, N, h)`` of the mosaic's CRS to scene pixels.
     """
-    from ..adjust.models import MapPolynomial
+    return [model_from_dict(m) for m in json.loads(ds.attrs["models"])]
 
-    return [(MapPolynomial(m["order"], tuple(m["origin"]), m["scale"]), np.asarray(m["params"]))
-            for m in json.loads(ds.attrs["models"])]
+
+def _carried(path) -> object | None:
+    """The RPC or line scanner a scene carries, if any (its footprint for a polynomial block)."""
+    for kind in ("rpc", "linescanner"):
+        try:
+            return scene_sensor(path, kind)
+        except (InputError, OSError, ValueError):
+            continue
+    return None
+
+
+def _open_dem(path, ref: xr.DataArray, tile: int) -> xr.DataArray:
+    """The DEM as a scene in the reference's CRS (reprojected, bilinear, if it has another)."""
+    dem = open_scene(path, chunks=tile, grid=True)
+    if not dem.attrs.get("georeferenced"):
+        raise InputError(path, "the DEM is not georeferenced")
+    if not ref.attrs.get("georeferenced"):
+        raise InputError(ref.attrs["source"], "is not georeferenced: a DEM needs the reference's CRS")
+    if dem.rio.crs != ref.rio.crs:
+        from rasterio.enums import Resampling
+
+        attrs = dict(dem.attrs)
+        dem = dem.isel(band=[0]).load().rio.reproject(ref.rio.crs, resampling=Resampling.bilinear).chunk(
+            {"band": 1, "y": tile, "x": tile})
+        dem.attrs.update(attrs)
+    return dem.isel(band=[0])
 
 
 def world_grid(ds: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:

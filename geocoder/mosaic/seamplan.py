@@ -54,7 +54,7 @@ def seam_factor(shape: tuple[int, int], *, base: int = 8, largest: int = 64) -> 
 
 
 def coarse_tile(window: tuple[int, int, int, int], transform: Affine, models: list, readers: list, shapes: list,
-                balance: np.ndarray, boxes: np.ndarray, factor: int, samples: int) -> dict:
+                balance: np.ndarray, boxes: np.ndarray, factor: int, samples: int, dem=None) -> dict:
     """Coarse cells of one window of the output in every scene that covers it (worker side).
 
     Parameters
@@ -75,6 +75,8 @@ def coarse_tile(window: tuple[int, int, int, int], transform: Affine, models: li
         Output pixels per cell.
     samples : int
         Samples per cell and axis.
+    dem : callable, optional
+        ``dem(E, N)``: ground heights; 0 without.
 
     Returns
     -------
@@ -93,7 +95,7 @@ def coarse_tile(window: tuple[int, int, int, int], transform: Affine, models: li
     cy, cx = np.meshgrid((np.arange(i0, i0 + nr) + 0.5) * factor - 0.5, (np.arange(j0, j0 + nc) + 0.5) * factor - 0.5,
                          indexing="ij")
     ex, ny = pixel_to_world(transform, np.concatenate([gx.ravel(), cx.ravel()]), np.concatenate([gy.ravel(), cy.ravel()]))
-    ground = np.column_stack([ex, ny, np.zeros(ex.size)])
+    ground = np.column_stack([ex, ny, np.zeros(ex.size) if dem is None else dem(ex, ny)])
     m = gx.size
     out = {}
     for k in near:
@@ -119,7 +121,7 @@ def coarse_tile(window: tuple[int, int, int, int], transform: Affine, models: li
 
 def plan_seams(job, store: str, grid_shape: tuple[int, int], tile: int, transform: Affine, models: list, readers: list,
                shapes: list, balance: np.ndarray, boxes: np.ndarray, pairs: list[tuple[int, int]], *,
-               samples: int = 4) -> dict:
+               samples: int = 4, dem=None) -> dict:
     """Cut the seams of a mosaic on its coarse grid and write the label map into ``store``.
 
     Parameters
@@ -138,6 +140,8 @@ def plan_seams(job, store: str, grid_shape: tuple[int, int], tile: int, transfor
         Overlapping pairs of block scenes.
     samples : int
         Samples per cell and axis.
+    dem : callable, optional
+        ``dem(E, N)``: ground heights (:class:`~geocoder.mosaic.heights.MapDEM`); 0 without.
 
     Returns
     -------
@@ -159,7 +163,7 @@ def plan_seams(job, store: str, grid_shape: tuple[int, int], tile: int, transfor
     ctile = factor * math.ceil(tile / factor)
     cgrid = TileGrid.regular(*grid_shape, ctile)
     tasks = {f"seam-{t.key}": dask.delayed(coarse_tile, pure=True)(
-        (t.row0, t.row1, t.col0, t.col1), transform, models, readers, shapes, balance, boxes, factor, samples)
+        (t.row0, t.row1, t.col0, t.col1), transform, models, readers, shapes, balance, boxes, factor, samples, dem)
         for t in cgrid}
     results = job.run_tiles("seam cells", tasks, phase="seam cells")
     # every scene's cells over its box (clipped to the coarse grid)
