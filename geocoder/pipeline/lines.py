@@ -11,19 +11,37 @@ import dask
 import dask.array as da
 import numpy as np
 
-from ..quality.lines import (SUMS, LineCorrection, LineOptions, combine_sums, hole_estimates, line_corrections, line_sums,
-                             smooth_matches)
+from ..quality.lines import (
+    FIT_SUMS,
+    SUMS,
+    LineCorrection,
+    LineFit,
+    LineOptions,
+    combine_sums,
+    fit_sums,
+    hole_estimates,
+    line_coordinate,
+    line_corrections,
+    line_fits,
+    line_sums,
+    smooth_matches,
+)
 from ..status import Status
 
 
-def _block_sums(dx, dy, px, py, status, sigma_x, sigma_y, block_info=None):
+def _block_sums(dx, dy, px, py, status, sigma_x, sigma_y, block_info=None, *, width: int):
     usable = (status == Status.MATCHED) | (status == Status.FILLED)
     col0 = block_info[0]["array-location"][1][0]
-    return line_sums(dx, dy, px, py, usable, sigma_x, sigma_y, col0)[..., None]
+    lines = line_sums(dx, dy, px, py, usable, sigma_x, sigma_y, col0)
+    fits = fit_sums(dx - px, dy - py, sigma_x, sigma_y, status == Status.MATCHED, col0=col0, width=width)
+    return np.concatenate([lines, fits])[..., None]
 
 
-def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], options: LineOptions) -> LineCorrection:
-    """Compute the correction of every row of a dense field (its matched and filled pixels).
+def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], options: LineOptions,
+                    *, correlation: int = 51) -> tuple[LineCorrection, LineFit | None]:
+    """Compute the correction of every row of a dense field (its matched and filled pixels),
+    and the fit along every row that its matches are shrunk toward (None with
+    ``options.fit_order = -1``), from one pass over the field.
 
     Parameters
     ----------
@@ -32,18 +50,26 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     polynomial : tuple of dask.array.Array
         The global polynomial's ``dx, dy`` on the same grid.
     options : LineOptions
+    correlation : int
+        Template length along the line (px): a row's fit needs twice as many matches.
 
     Returns
     -------
-    LineCorrection
+    LineCorrection, LineFit or None
     """
     dx = field["dx"]
+    n = len(SUMS) + len(FIT_SUMS)
     parts = da.map_blocks(_block_sums, dx, field["dy"], polynomial[0], polynomial[1], field["status"], field["sigma_x"],
-                          field["sigma_y"], new_axis=0, chunks=((len(SUMS),), dx.chunks[0], (1,) * len(dx.chunks[1])),
-                          dtype=np.float64)
+                          field["sigma_y"], new_axis=0, chunks=((n,), dx.chunks[0], (1,) * len(dx.chunks[1])),
+                          dtype=np.float64, width=dx.shape[1])
     (parts,) = dask.compute(parts)
-    sums = combine_sums(parts)
-    return line_corrections(sums, min_count=options.min_count, max_gap=options.max_gap)
+    sums = combine_sums(parts[: len(SUMS)])
+    rows = line_corrections(sums, min_count=options.min_count, max_gap=options.max_gap)
+    if options.fit_order < 0:
+        return rows, None
+    fits = line_fits(parts[len(SUMS):].sum(axis=-1), order=options.fit_order,
+                     min_count=max(options.min_count, 2 * correlation), correlation=correlation)
+    return rows, fits
 
 
 def _hole_block(stack: np.ndarray, *, max_hole: int, edge: int) -> np.ndarray:
@@ -180,3 +206,58 @@ def smooth_field(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Arra
     for k, name in enumerate(("dx", "dy", "sigma_x", "sigma_y")):
         res[name] = out[k]
     return res
+
+
+def shrink_to_lines(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array],
+                    fits: LineFit | None) -> dict[str, da.Array]:
+    """Every match pulled toward its line's fit by how little the line departs from it (lazy).
+
+    A matched pixel's residual ``r`` (after the polynomial) becomes ``f + k (r - f)``, ``f``
+    its line's fit (:func:`geocoder.quality.lines.line_fits`) at its column and
+    ``k = tau2 / (tau2 + sigma^2)``: where the line follows the fit to the matches' noise
+    (``tau2`` small: turbulence that moves the whole line, or nothing the polynomial does not
+    know) the pixel takes the fit, which rests on the whole line; where the line departs
+    from it (relief, a local distortion) the match stands. Its sigma is the posterior one,
+    ``k sigma^2 + (1 - k)^2 v_fit``, with ``v_fit`` the fit's variance at that column. Only
+    ``MATCHED`` pixels of rows with a fit change; the sums behind the fits are added over
+    whole rows, so the result does not depend on the tiling.
+
+    Parameters
+    ----------
+    field : dict of dask.array.Array
+        ``dx``, ``dy``, ``status``, ``sigma_x``, ``sigma_y`` (and others, passed through).
+    polynomial : tuple of dask.array.Array
+        The global polynomial's ``dx, dy``.
+    fits : LineFit or None
+        From :func:`row_corrections` (None: the field is returned as it is).
+
+    Returns
+    -------
+    dict of dask.array.Array
+        The same keys as ``field``.
+    """
+    if fits is None or not fits.ok.any():
+        return field
+    chunks = (field["dx"].chunks[0], (1,))
+
+    def column(values: np.ndarray) -> da.Array:
+        return da.from_array(np.asarray(values, np.float64)[:, None], chunks=chunks)
+
+    width = field["dx"].shape[1]
+    u = da.from_array(line_coordinate(np.arange(width), width)[None, :], chunks=((1,), field["dx"].chunks[1]))
+    matched = (field["status"] == Status.MATCHED) & (column(fits.ok) > 0)
+    out = dict(field)
+    for k, (name, coef, tau2, spread) in enumerate((("x", fits.cx, fits.tau2_x, fits.spread_x),
+                                                    ("y", fits.cy, fits.tau2_y, fits.spread_y))):
+        d, sig = field[f"d{name}"], field[f"sigma_{name}"]
+        fit = column(coef[:, 0]) + column(coef[:, 1]) * u + column(coef[:, 2]) * u * u
+        s2 = sig.astype(np.float64) ** 2
+        t2 = column(tau2)
+        keep = t2 / da.maximum(t2 + s2, 1e-300)
+        v_fit = da.minimum(sum(column(fits.lev[k, :, j]) * u**j for j in range(5)), column(spread))
+        value = polynomial[k] + fit + keep * (d - polynomial[k] - fit)
+        sigma = da.sqrt(keep * s2 + (1.0 - keep) ** 2 * v_fit)
+        sel = matched & da.isfinite(sig) & da.isfinite(d)
+        out[f"d{name}"] = da.where(sel, value, d).astype(np.float32)
+        out[f"sigma_{name}"] = da.where(sel, sigma, sig).astype(np.float32)
+    return out

@@ -19,7 +19,6 @@ polynomial alone, which cannot know the line's shift.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numba
@@ -55,6 +54,10 @@ class LineOptions:
         0.043 (the demo), but a window mean also carries the lattice's small path
         dependence to its neighbours: 0.0102 px between tilings 256 and 1024 on one pixel of
         the S2 test pair, over the tests' 0.01 bound (issue 14's notes).
+    fit_order : int
+        Order (0-2) of the polynomial along each line, fitted to the residuals of all of the
+        line's matches, that every match is shrunk toward by how much the line departs from
+        it beyond the matches' noise (:func:`line_fits`); -1: none.
     """
 
     enabled: bool = True
@@ -63,6 +66,7 @@ class LineOptions:
     max_hole: int = 128
     edge: int = 32
     smooth: int = 0
+    fit_order: int = 2
 
     def validate(self) -> None:
         """Raise ValueError if an option is out of range."""
@@ -76,6 +80,8 @@ class LineOptions:
             raise ValueError(f"edge must be an integer >= 1, got {self.edge!r}")
         if int(self.smooth) != self.smooth or self.smooth < 0 or (self.smooth and self.smooth % 2 == 0):
             raise ValueError(f"smooth must be 0 or an odd integer, got {self.smooth!r}")
+        if self.fit_order not in (-1, 0, 1, 2):
+            raise ValueError(f"fit_order must be -1, 0, 1 or 2, got {self.fit_order!r}")
 
 
 def line_sums(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray, usable: np.ndarray,
@@ -204,6 +210,148 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8)
             out[f"s{name}"][gap] = np.sqrt(np.maximum(v[a], v[b])) + 0.5 * np.abs(c[b] - c[a])
         out["first"][gap], out["last"][gap] = np.maximum(first[a], first[b]), np.minimum(last[a], last[b])
     return LineCorrection(**out, own=own)
+
+
+#: Quantities :func:`fit_sums` returns per row, all added over the blocks of a row band: the
+#: moments ``sum(u^k)`` of the line coordinate of the matches, ``sum(r u^k)`` of their residuals
+#: in x and y, the residuals' squares and the matches' variances.
+FIT_SUMS = ("u0", "u1", "u2", "u3", "u4", "xu0", "xu1", "xu2", "yu0", "yu1", "yu2", "xx", "yy", "vx", "vy")
+
+
+def line_coordinate(cols: np.ndarray, width: int) -> np.ndarray:
+    """Column -> ``u`` in [-1, 1] across the scene's width (the fits' coordinate along a line)."""
+    half = max(0.5 * (width - 1), 1.0)
+    return (np.asarray(cols, np.float64) - 0.5 * (width - 1)) / half
+
+
+def fit_sums(rx: np.ndarray, ry: np.ndarray, sx: np.ndarray, sy: np.ndarray, matched: np.ndarray, *,
+             col0: int = 0, width: int) -> np.ndarray:
+    """Per row of a block: :data:`FIT_SUMS` of its matches (those with a sigma).
+
+    Parameters
+    ----------
+    rx, ry : ndarray (H, W)
+        Residuals ``d - polynomial``.
+    sx, sy : ndarray (H, W)
+        The matches' sigmas.
+    matched : ndarray of bool (H, W)
+    col0 : int
+        Column of the block's first pixel in the scene.
+    width : int
+        The scene's width (px).
+
+    Returns
+    -------
+    ndarray (15, H), float64
+    """
+    ok = matched & np.isfinite(sx) & np.isfinite(sy) & np.isfinite(rx) & np.isfinite(ry)
+    u = line_coordinate(np.arange(ok.shape[-1]) + col0, width)[None, :]
+    w = ok.astype(np.float64)
+    x = np.where(ok, np.asarray(rx, np.float64), 0.0)
+    y = np.where(ok, np.asarray(ry, np.float64), 0.0)
+    vx = np.where(ok, np.asarray(sx, np.float64) ** 2, 0.0)
+    vy = np.where(ok, np.asarray(sy, np.float64) ** 2, 0.0)
+    powers = [w, w * u, w * u * u, w * u ** 3, w * u ** 4]
+    return np.stack([p.sum(axis=-1) for p in powers] + [(x * powers[k]).sum(axis=-1) for k in range(3)]
+                    + [(y * powers[k]).sum(axis=-1) for k in range(3)]
+                    + [(x * x).sum(axis=-1), (y * y).sum(axis=-1), vx.sum(axis=-1), vy.sum(axis=-1)])
+
+
+@dataclass(frozen=True)
+class LineFit:
+    """Per row, a polynomial of the line coordinate ``u`` (:func:`line_coordinate`) fitted to
+    the residuals of the line's matches (:func:`line_fits`).
+
+    Attributes
+    ----------
+    cx, cy : ndarray (H, 3)
+        Coefficients of ``1, u, u^2`` (zero beyond the order) in x and y.
+    tau2_x, tau2_y : ndarray (H,)
+        Variance of the residuals about the fit beyond the matches' own noise (px^2): how far
+        the line departs from the fit.
+    spread_x, spread_y : ndarray (H,)
+        Variance of the residuals about the fit (px^2).
+    lev : ndarray (2, H, 5)
+        Coefficients of ``1, u, ..., u^4`` of the variance of the fit at ``u`` (px^2), in x and
+        y (at most the spread: a fit is never less certain than one match).
+    ok : ndarray of bool (H,)
+        Rows with a fit (enough matches).
+    """
+
+    cx: np.ndarray
+    cy: np.ndarray
+    tau2_x: np.ndarray
+    tau2_y: np.ndarray
+    spread_x: np.ndarray
+    spread_y: np.ndarray
+    lev: np.ndarray
+    ok: np.ndarray
+
+
+def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correlation: int = 51) -> LineFit:
+    """Least-squares polynomial of order ``order`` along every row from :data:`FIT_SUMS`.
+
+    After the global polynomial, what is left of a scanner's displacement along one line is
+    its turbulence (a shift, a rotation) and the polynomial's own error, both smooth along
+    the line; the matches add their noise, pixel by pixel. A low-order fit over the whole
+    line averages that noise away where the line follows it; its covariance counts the
+    matches once per ``correlation`` pixels (neighbouring matches share most of their
+    template). How far the line departs from the fit beyond the matches' noise (``tau2``)
+    says how much of each match to keep (:func:`geocoder.pipeline.lines.shrink_to_lines`):
+    relief or a local distortion makes it large and the matches stand.
+
+    Parameters
+    ----------
+    sums : ndarray (15, H)
+        :data:`FIT_SUMS` of whole rows.
+    order : int
+        0, 1 or 2.
+    min_count : int
+        Fewest matches a row needs for a fit.
+    correlation : int
+        Template length along the line (px): neighbouring matches share most of their template.
+
+    Returns
+    -------
+    LineFit
+    """
+    s = np.asarray(sums, dtype=np.float64)
+    rows = s.shape[1]
+    p = order + 1
+    n = s[0]
+    N = np.empty((rows, p, p))
+    for i in range(p):
+        for j in range(p):
+            N[:, i, j] = s[i + j]
+    ok = n >= max(min_count, p + 1)
+    # rows whose normal matrix is too ill-conditioned to trust (matches bunched in one spot)
+    cond = np.full(rows, np.inf)
+    if ok.any():
+        cond[ok] = np.linalg.cond(N[ok])
+    ok &= cond < 1e8
+    out = {k: np.zeros((rows, 3)) for k in ("cx", "cy")}
+    var = {k: np.zeros(rows) for k in ("tau2_x", "tau2_y", "spread_x", "spread_y")}
+    if not ok.any():
+        return LineFit(**out, **var, lev=np.zeros((2, rows, 5)), ok=ok)
+    inv = np.linalg.inv(N[ok])
+    post = np.zeros((2, int(ok.sum()), p, p))
+    for a, (name, r0, rr, v) in enumerate((("x", 5, 11, 13), ("y", 8, 12, 14))):
+        rhs = s[r0 : r0 + p, ok].T
+        coef = np.einsum("rij,rj->ri", inv, rhs)
+        # residual sum of squares of a least-squares fit: sum(r^2) - coef . rhs
+        ss = np.maximum(s[rr, ok] - np.einsum("ri,ri->r", coef, rhs), 0.0)
+        spread = ss / (n[ok] - p)
+        noise = s[v, ok] / n[ok]
+        out[f"c{name}"][ok, :p] = coef
+        post[a] = (spread * correlation)[:, None, None] * inv
+        var[f"spread_{name}"][ok] = spread
+        var[f"tau2_{name}"][ok] = np.maximum(spread - noise, 0.0)
+    # the fit's variance a(u)^T P a(u), a = (1, u, u^2)[:p], as a quartic in u; x and y apart
+    lev = np.zeros((2, rows, 5))
+    for i in range(p):
+        for j in range(p):
+            lev[:, ok, i + j] += post[:, :, i, j]
+    return LineFit(**out, **var, lev=lev, ok=ok)
 
 
 @numba.njit(nogil=True, cache=True)
