@@ -19,7 +19,7 @@ RMS difference of the filled / estimated values from the removed matches and fro
 
 Usage::
 
-    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default]
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit]
 """
 
 from __future__ import annotations
@@ -207,9 +207,11 @@ def main() -> None:
     from geocoder import register
     from geocoder.pipeline.dense import DenseOptions
     from geocoder.pipeline.register import RegisterOptions
+    from geocoder.quality.lines import LineOptions
     from geocoder.runtime import local_cluster
 
-    modes = {"full": RegisterOptions(matching=DenseOptions(col_step=1, halo=4)), "default": None}
+    modes = {"full": RegisterOptions(matching=DenseOptions(col_step=1, halo=4)), "default": None,
+             "no-line-fit": RegisterOptions(lines=LineOptions(fit_order=-1))}
     table, holes = [], []
     with tempfile.TemporaryDirectory(prefix="bench-dense-cases-") as tmp, local_cluster(args.workers) as cluster, \
             Client(cluster) as client:

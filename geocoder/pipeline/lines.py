@@ -72,6 +72,11 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     return rows, fits
 
 
+def _per_row(values: np.ndarray, like: da.Array, dtype) -> da.Array:
+    """One value per row as an (H, 1) array in the row chunks of ``like`` (broadcasts along rows)."""
+    return da.from_array(np.asarray(values, dtype)[:, None], chunks=(like.chunks[0], (1,)))
+
+
 def _hole_block(stack: np.ndarray, *, max_hole: int, edge: int) -> np.ndarray:
     dx, dy, px, py, status, sx, sy = stack
     usable = (status == Status.MATCHED) | (status == Status.FILLED)
@@ -133,10 +138,8 @@ def apply_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da
     dict of dask.array.Array
         The same keys as ``field``.
     """
-    chunks = (field["dx"].chunks[0], (1,))
-
     def column(values: np.ndarray) -> da.Array:
-        return da.from_array(values.astype(np.float32)[:, None], chunks=chunks)
+        return _per_row(values, field["dx"], np.float32)
 
     status = field["status"]
     cols = da.arange(field["dx"].shape[1], chunks=field["dx"].chunks[1])[None, :]
@@ -238,10 +241,8 @@ def shrink_to_lines(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     """
     if fits is None or not fits.ok.any():
         return field
-    chunks = (field["dx"].chunks[0], (1,))
-
     def column(values: np.ndarray) -> da.Array:
-        return da.from_array(np.asarray(values, np.float64)[:, None], chunks=chunks)
+        return _per_row(values, field["dx"], np.float64)
 
     width = field["dx"].shape[1]
     u = da.from_array(line_coordinate(np.arange(width), width)[None, :], chunks=((1,), field["dx"].chunks[1]))
