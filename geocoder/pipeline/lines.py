@@ -13,17 +13,20 @@ import numpy as np
 
 from ..quality.lines import (
     FIT_SUMS,
+    FIT_TABLE,
     SUMS,
     LineCorrection,
     LineFit,
     LineOptions,
     combine_sums,
     fit_sums,
+    fit_table,
     hole_estimates,
     line_coordinate,
     line_corrections,
     line_fits,
     line_sums,
+    shrink_block,
     smooth_matches,
 )
 from ..status import Status
@@ -241,24 +244,18 @@ def shrink_to_lines(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     """
     if fits is None or not fits.ok.any():
         return field
-    def column(values: np.ndarray) -> da.Array:
-        return _per_row(values, field["dx"], np.float64)
-
-    width = field["dx"].shape[1]
-    u = da.from_array(line_coordinate(np.arange(width), width)[None, :], chunks=((1,), field["dx"].chunks[1]))
-    matched = (field["status"] == Status.MATCHED) & (column(fits.ok) > 0)
+    dx = field["dx"]
+    width = dx.shape[1]
+    u = da.from_array(line_coordinate(np.arange(width), width), chunks=(dx.chunks[1],))
+    table = da.from_array(fit_table(fits), chunks=(dx.chunks[0], (len(FIT_TABLE),)))
+    stack = da.blockwise(_shrink_block, "kij", dx, "ij", field["dy"], "ij", polynomial[0], "ij", polynomial[1], "ij",
+                         field["status"], "ij", field["sigma_x"], "ij", field["sigma_y"], "ij", u, "j", table, "ip",
+                         new_axes={"k": 4}, concatenate=True, dtype=np.float32)
     out = dict(field)
-    for k, (name, coef, tau2, spread) in enumerate((("x", fits.cx, fits.tau2_x, fits.spread_x),
-                                                    ("y", fits.cy, fits.tau2_y, fits.spread_y))):
-        d, sig = field[f"d{name}"], field[f"sigma_{name}"]
-        fit = column(coef[:, 0]) + column(coef[:, 1]) * u + column(coef[:, 2]) * u * u
-        s2 = sig.astype(np.float64) ** 2
-        t2 = column(tau2)
-        keep = t2 / da.maximum(t2 + s2, 1e-300)
-        v_fit = da.minimum(sum(column(fits.lev[k, :, j]) * u**j for j in range(5)), column(spread))
-        value = polynomial[k] + fit + keep * (d - polynomial[k] - fit)
-        sigma = da.sqrt(keep * s2 + (1.0 - keep) ** 2 * v_fit)
-        sel = matched & da.isfinite(sig) & da.isfinite(d)
-        out[f"d{name}"] = da.where(sel, value, d).astype(np.float32)
-        out[f"sigma_{name}"] = da.where(sel, sigma, sig).astype(np.float32)
+    for k, name in enumerate(("dx", "dy", "sigma_x", "sigma_y")):
+        out[name] = stack[k]
     return out
+
+
+def _shrink_block(dx, dy, px, py, status, sx, sy, u, table) -> np.ndarray:
+    return np.stack(shrink_block(dx, dy, px, py, status == Status.MATCHED, sx, sy, u, table))

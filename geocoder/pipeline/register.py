@@ -427,10 +427,10 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
                 breader, dreader, grid, seeds_from_tiepoints(tp, mapping), mapping, job.file("dense.zarr"),
                 band=opts.band - 1, dist_band=(opts.dist_band or opts.band) - 1, opts=opts.matching, job=job,
             )
+            field_ = dense_field(result, (dx, dy), opts.postfilter, store=True, job=job)  # the post-filter, stored
         summary.dense_rounds = result.rounds
         summary.dense_converged = result.converged
         summary.dense_new_per_round = result.new_per_round
-        field_ = dense_field(result, (dx, dy), opts.postfilter, store=True, job=job)
         if opts.lines.enabled:
             with timer("line estimates"):
                 correlation = 2 * opts.matching.alsc.radius + 1

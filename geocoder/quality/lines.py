@@ -288,6 +288,59 @@ class LineFit:
     ok: np.ndarray
 
 
+#: Columns of :func:`fit_table`: per row, whether it has a fit, then per axis the fit's
+#: coefficients, ``tau2``, the spread and the quartic of the fit's variance.
+FIT_TABLE = ("ok", "cx0", "cx1", "cx2", "cy0", "cy1", "cy2", "tau2_x", "tau2_y", "spread_x", "spread_y",
+             *(f"vx{k}" for k in range(5)), *(f"vy{k}" for k in range(5)))
+
+
+def fit_table(fits: LineFit) -> np.ndarray:
+    """The :class:`LineFit` as one (H, 21) float64 table (columns :data:`FIT_TABLE`)."""
+    return np.column_stack([fits.ok.astype(np.float64), fits.cx, fits.cy, fits.tau2_x, fits.tau2_y, fits.spread_x,
+                            fits.spread_y, fits.lev[0], fits.lev[1]])
+
+
+def shrink_block(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray, matched: np.ndarray,
+                 sx: np.ndarray, sy: np.ndarray, u: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The matches of a block shrunk toward their lines' fits (see
+    :func:`geocoder.pipeline.lines.shrink_to_lines`).
+
+    Parameters
+    ----------
+    dx, dy, px, py : ndarray (h, w)
+        The field and the polynomial's displacement.
+    matched : ndarray of bool (h, w)
+    sx, sy : ndarray (h, w)
+        The matches' sigmas.
+    u : ndarray (w,)
+        The line coordinate of the block's columns (:func:`line_coordinate`).
+    table : ndarray (h, 21)
+        :func:`fit_table` of the block's rows.
+
+    Returns
+    -------
+    dx, dy, sx, sy : ndarray of float32 (h, w)
+    """
+    t = np.asarray(table, np.float64)
+    uu = np.asarray(u, np.float64)[None, :]
+    powers = [np.ones_like(uu), uu, uu * uu, uu**3, uu**4]
+    out = []
+    for a, (d, p, sig) in enumerate(((dx, px, sx), (dy, py, sy))):
+        d64, s64 = np.asarray(d, np.float64), np.asarray(sig, np.float64)
+        c = t[:, 1 + 3 * a : 4 + 3 * a]
+        fit = c[:, :1] + c[:, 1:2] * uu + c[:, 2:3] * uu * uu
+        s2 = s64 * s64
+        tau2 = t[:, 7 + a : 8 + a]
+        keep = tau2 / np.maximum(tau2 + s2, 1e-300)
+        quartic = sum(t[:, 11 + 5 * a + k : 12 + 5 * a + k] * powers[k] for k in range(5))
+        v_fit = np.minimum(quartic, t[:, 9 + a : 10 + a])
+        value = p + fit + keep * (d64 - p - fit)
+        sigma = np.sqrt(keep * s2 + (1.0 - keep) ** 2 * v_fit)
+        sel = matched & (t[:, :1] > 0) & np.isfinite(s64) & np.isfinite(d64)
+        out += [np.where(sel, value, d64).astype(np.float32), np.where(sel, sigma, s64).astype(np.float32)]
+    return out[0], out[2], out[1], out[3]
+
+
 def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correlation: int = 51) -> LineFit:
     """Least-squares polynomial of order ``order`` along every row from :data:`FIT_SUMS`.
 
