@@ -18,7 +18,8 @@ DPI = 90
 
 def _save(plt, fig, path: Path) -> None:
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
+    # "tight" keeps what tight_layout leaves out, such as the status legend beside its axes
+    fig.savefig(path, dpi=DPI, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)
 
 

@@ -22,7 +22,7 @@ figure { margin: 0.8em 0; }
 figure img { max-width: 100%; border: 1px solid #ddd; }
 figcaption { font-size: 0.9em; color: #444; }
 p.missing { background: #fff3cd; border-left: 4px solid #e0a800; padding: 0.4em 0.8em; }
-pre { background: #f6f6f6; padding: 0.6em; overflow-x: auto; }
+pre { background: #f6f6f6; padding: 0.6em; white-space: pre-wrap; }
 nav a { margin-right: 1em; }
 """
 
