@@ -10,7 +10,13 @@ import time
 
 import numpy as np
 
-from geocoder.simulate.adjust_experiments import block_table, blunder_case, edge_equivalence, edge_table, single_frame_table
+from geocoder.simulate.adjust_experiments import (
+    block_table,
+    blunder_case,
+    edge_equivalence,
+    edge_table,
+    single_frame_table,
+)
 
 SEED_T3 = {10: (11.8, 102.5), 15: (0.6, 13.2), 25: (0.5, 10.8), 40: (0.5, 10.4), 81: (0.5, 9.9)}
 SEED_T5 = [(90.8, None), (79.9, None), (66.2, 75.8), (69.8, 72.2), (67.9, 67.9)]

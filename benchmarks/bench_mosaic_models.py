@@ -32,8 +32,8 @@ from distributed import Client, LocalCluster
 
 from geocoder.mosaic import load_models, mosaic, scene_positions
 from geocoder.mosaic.diagnostics import seam_errors
-from geocoder.simulate.linescanner_block import line_scanner_block
 from geocoder.quality.accuracy import mosaic_errors
+from geocoder.simulate.linescanner_block import line_scanner_block
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 S2 = DATA / "s2_arosics" / "ref_S2A_20160608T153121_T33UUU_sub.tif"

@@ -110,10 +110,9 @@ def _child(args) -> None:
 
     import geocoder
     from geocoder import register
-    from geocoder.runtime import local_cluster
-
     from geocoder.pipeline.dense import DenseOptions
     from geocoder.pipeline.register import RegisterOptions
+    from geocoder.runtime import local_cluster
 
     work = Path(args.child)
     dense = args.dense in ("yes", "full")

@@ -143,7 +143,7 @@ def read_info(directory: str | None = None) -> ClusterInfo | None:
     except FileNotFoundError:
         return None
     except (ValueError, TypeError) as exc:
-        raise GeocoderError(f"{path}: not a cluster file ({exc})") from None
+        raise GeocoderError(f"{path}: not a cluster file ({exc})") from exc
 
 
 def up(workers: int = 2, *, directory: str | None = None, tls: bool = False, memory_limit: str = "auto",
@@ -214,7 +214,7 @@ def up(workers: int = 2, *, directory: str | None = None, tls: bool = False, mem
         )
         _wait(lambda: os.path.exists(sched_file), timeout, "the scheduler to start", directory, sched)
         preload = preload_script()
-        import geocoder
+        from ._version import __version__
 
         worker_args = [
             "--scheduler-file", sched_file, "--nthreads", "1", "--memory-limit", memory_limit,
@@ -222,7 +222,7 @@ def up(workers: int = 2, *, directory: str | None = None, tls: bool = False, mem
             *(role_args(tls_dir, "worker") if tls else []),
         ]
         # the preload's own options are the words after it, so it comes last
-        preload_args = ["--preload", preload, f"--geocoder-version={geocoder.__version__}"] if preload else []
+        preload_args = ["--preload", preload, f"--geocoder-version={__version__}"] if preload else []
         for i in range(workers):
             spawn([*cmd, "worker", *worker_args, "--name", f"geocoder-worker-{i}", *preload_args], f"worker-{i}.log")
         with open(sched_file) as f:

@@ -212,9 +212,11 @@ def _read_tags(raw: bytes) -> dict[int, tuple[int, np.ndarray]]:
 def _geotags(crs, transform) -> list[_Entry]:
     """The GeoTIFF tags GDAL writes for ``crs`` and ``transform`` (from a 1 x 1 GeoTIFF in memory)."""
     import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
 
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+        # a CRS with an identity transform (a raw frame given a CRS) is written as such on purpose
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
         with rasterio.MemoryFile() as mem:
             with mem.open(driver="GTiff", width=1, height=1, count=1, dtype="uint8", crs=crs, transform=transform) as d:
                 d.write(np.zeros((1, 1, 1), np.uint8))

@@ -11,6 +11,7 @@ from typing import Any, Iterator
 import dask
 from distributed import Client, LocalCluster, WorkerPlugin, as_completed
 
+from ._version import __version__
 from .errors import EnvironmentFailure, GeocoderError
 
 log = logging.getLogger(__name__)
@@ -26,10 +27,13 @@ log = logging.getLogger(__name__)
 #: heap and are reused; the trim threshold still hands the heap's free top back. glibc reads
 #: both when the process starts, so they must reach it through the environment it starts with
 #: (the nanny's ``pre-spawn-environ``, see :data:`WORKER_CONFIG`).
+#: This is the one definition: the preload (``workers/geocoder_preload.py``) imports it, and the
+#: ``ENV`` of ``workers/Dockerfile`` must repeat it (tests/test_worker_env.py compares them).
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1",
               "GDAL_CACHEMAX": "16", "MALLOC_MMAP_THRESHOLD_": "33554432"}
 
-#: Dask configuration of every worker (also in ``workers/dask.yaml``). The statistical
+#: Dask configuration of every worker (``workers/dask.yaml`` must hold it too; tests/test_worker_env.py
+#: compares them). The statistical
 #: profiler keeps up to 1000 one-second cycles of call-stack trees per worker, so a worker's
 #: memory grew with the job's length rather than the tile (six 1024² dense jobs in a row:
 #: peak 436 -> 444 MiB with it, 428 -> 432 without). Turn it back on to tune
@@ -142,7 +146,7 @@ def connect(scheduler: str, *, timeout: float = 10) -> Client:
                 info = json.load(f)
             address = info["address"]
         except (OSError, ValueError, KeyError) as exc:
-            raise GeocoderError(f"{scheduler}: not a cluster file written by 'geocoder cluster up' ({exc})") from None
+            raise GeocoderError(f"{scheduler}: not a cluster file written by 'geocoder cluster up' ({exc})") from exc
         if info.get("tls"):
             from .certs import client_security
 
@@ -172,9 +176,7 @@ def _first_line(exc: BaseException) -> str:
 
 
 def _geocoder_version() -> str:
-    import geocoder
-
-    return geocoder.__version__
+    return __version__
 
 
 def check_versions(client: Client, *, wait: float = 60) -> None:

@@ -19,10 +19,10 @@ from affine import Affine
 from rasterio.errors import NotGeoreferencedWarning
 
 from . import storage
-from .errors import InputError, as_environment_failure
 from .conventions import georeference, pixel_grid
-from .outputs import check_output, commit_output, product_attrs
+from .errors import InputError, as_environment_failure
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
+from .outputs import check_output, commit_output, product_attrs
 
 IMAGE_VAR = "image"
 

@@ -4,13 +4,12 @@ written as GeoTIFFs) and comparisons of output stores."""
 from __future__ import annotations
 
 import json
-
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import zarr
 import xarray as xr
+import zarr
 from affine import Affine
 from conftest import read_band
 

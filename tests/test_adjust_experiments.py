@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pytest
 
+from geocoder.adjust.io import scanner_to_dict, write_observations, write_points
 from geocoder.simulate.adjust_experiments import (
     block_setup,
     block_table,
@@ -17,7 +18,6 @@ from geocoder.simulate.adjust_experiments import (
     edge_table,
     single_frame_table,
 )
-from geocoder.adjust.io import scanner_to_dict, write_observations, write_points
 
 
 def test_table3_collinearity_recovers_polynomial_keeps_systematic_error():

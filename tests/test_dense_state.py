@@ -7,7 +7,7 @@ import pytest
 import zarr
 
 from geocoder.match.grow import NFIELDS, UNVISITED
-from geocoder.pipeline.dense import (DenseOptions, _read_core, _read_state, _write_core, create_state, lattice_step)
+from geocoder.pipeline.dense import DenseOptions, _read_core, _read_state, _write_core, create_state, lattice_step
 from geocoder.tiles import TileGrid
 
 

@@ -2,7 +2,11 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from geocoder.kernels.correlate import (
-    _shift_normals, _shift_normals_reference, extract_patches, patch_offsets, refine_shift,
+    _shift_normals,
+    _shift_normals_reference,
+    extract_patches,
+    patch_offsets,
+    refine_shift,
 )
 from geocoder.kernels.resample import sample
 

@@ -16,7 +16,7 @@ from affine import Affine
 
 from geocoder.mosaic import mosaic
 from geocoder.quality.accuracy import mosaic_errors
-from geocoder.scene import write_geotiff, world_to_pixel
+from geocoder.scene import world_to_pixel, write_geotiff
 from geocoder.simulate.block import BlockScene, render
 from geocoder.simulate.texture import synthetic_ortho
 

@@ -21,8 +21,8 @@ from geocoder.errors import InputError
 from geocoder.mosaic import mosaic, scene_positions
 from geocoder.mosaic.projection import project_window
 from geocoder.mosaic.sensors import model_from_dict, model_to_dict, scene_sensor, sensor_model
-from geocoder.simulate.linescanner_block import line_scanner_block
 from geocoder.quality.accuracy import mosaic_errors
+from geocoder.simulate.linescanner_block import line_scanner_block
 
 S2 = "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif"
 SIZE = 256

@@ -9,7 +9,6 @@ overviews of the same data, and opened with xarray/rioxarray (and GDAL where it 
 
 from __future__ import annotations
 
-import json
 import shutil
 import warnings
 from pathlib import Path

@@ -1,8 +1,9 @@
 """Dask worker preload: ``dask worker SCHEDULER --preload workers/geocoder_preload.py [--geocoder-version V]``.
 
-Pins numeric libraries to one thread (parallelism comes from Dask tasks), compiles the
-numba kernels once per worker process so the first tiles are not slowed by compilation,
-and logs the geocoder version the worker runs.
+Sets the worker environment (:data:`geocoder.runtime.WORKER_ENV`: numeric libraries pinned to
+one thread, as parallelism comes from Dask tasks, and a bounded GDAL block cache) where the
+process was not started with it, compiles the numba kernels once per worker process so the
+first tiles are not slowed by compilation, and logs the geocoder version the worker runs.
 
 ``--geocoder-version V`` (a preload argument: it goes after ``--preload`` and after the
 positional scheduler address) makes the worker refuse to start unless the installed geocoder
@@ -27,12 +28,18 @@ import logging
 import os
 
 import click
+import numba
 
-for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
-# GDAL's block cache defaults to 5 % of the machine's memory and fills with every tile read:
-# a worker's memory would grow with the scene. 16 MB is ample for tile-by-tile reads.
-os.environ.setdefault("GDAL_CACHEMAX", "16")
+from geocoder._version import __version__
+from geocoder.runtime import WORKER_ENV
+
+# Variables read at process start (the BLAS thread pools, glibc's malloc) only take effect
+# when the worker is started with them (the image's ENV, the nanny's environment); GDAL reads
+# its cache size when it first opens a file, so setting it here is in time.
+for var, value in WORKER_ENV.items():
+    os.environ.setdefault(var, value)
+# numba read its configuration when geocoder was imported above
+numba.config.reload_config()
 
 log = logging.getLogger("geocoder.worker")
 
@@ -42,9 +49,7 @@ _RUNTIME_CONTEXT_NAME = "dask_setup"
 
 
 def installed_version() -> str:
-    import geocoder
-
-    return geocoder.__version__
+    return __version__
 
 
 def check_version(expected: str) -> None:

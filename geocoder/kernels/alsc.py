@@ -76,6 +76,20 @@ import numpy as np
 
 __all__ = [
     "FIELDS",
+    "F_A11",
+    "F_A12",
+    "F_A21",
+    "F_A22",
+    "F_GAIN",
+    "F_ITERATIONS",
+    "F_OFFSET",
+    "F_RHO",
+    "F_SIGMA_X",
+    "F_SIGMA_Y",
+    "F_X",
+    "F_Y",
+    "NFIELDS",
+    "NPARAMS",
     "AlscOptions",
     "AlscResult",
     "Exit",
@@ -93,6 +107,21 @@ FIELDS = ("x", "y", "a11", "a12", "a21", "a22", "offset", "gain", "sigma_x", "si
 NPARAMS = 8
 NFIELDS = len(FIELDS)
 
+# Positions in the ``out`` vector (and, for the first NPARAMS, in a parameter vector), as plain
+# ints: numba freezes module-level ints as compile-time constants.
+F_X = FIELDS.index("x")
+F_Y = FIELDS.index("y")
+F_A11 = FIELDS.index("a11")
+F_A12 = FIELDS.index("a12")
+F_A21 = FIELDS.index("a21")
+F_A22 = FIELDS.index("a22")
+F_OFFSET = FIELDS.index("offset")
+F_GAIN = FIELDS.index("gain")
+F_SIGMA_X = FIELDS.index("sigma_x")
+F_SIGMA_Y = FIELDS.index("sigma_y")
+F_RHO = FIELDS.index("rho")
+F_ITERATIONS = FIELDS.index("iterations")
+
 
 class Exit(IntEnum):
     """Exit codes of a match (checked in this order; 0 = accepted)."""
@@ -108,14 +137,14 @@ class Exit(IntEnum):
 
 
 # Plain integer copies for the numba kernels (frozen as compile-time constants).
-_ACCEPTED = 0
-_OUTSIDE = 1
-_SINGULAR = 2
-_NOT_CONVERGED = 3
-_MOVED = 4
-_DEGENERATE = 5
-_LOW_CORRELATION = 6
-_IMPRECISE = 7
+_ACCEPTED = int(Exit.ACCEPTED)
+_OUTSIDE = int(Exit.OUTSIDE)
+_SINGULAR = int(Exit.SINGULAR)
+_NOT_CONVERGED = int(Exit.NOT_CONVERGED)
+_MOVED = int(Exit.MOVED)
+_DEGENERATE = int(Exit.DEGENERATE)
+_LOW_CORRELATION = int(Exit.LOW_CORRELATION)
+_IMPRECISE = int(Exit.IMPRECISE)
 
 # Smallest relaxation factor of a Gauss-Newton step (see the module docstring).
 _MIN_RELAX = 0.2
@@ -593,7 +622,7 @@ def alsc_point(
         out[k] = p[k]
     for k in range(NPARAMS, NFIELDS):
         out[k] = nan
-    out[11] = 0.0
+    out[F_ITERATIONS] = 0.0
     rx = radius
     ry = radius_y
     npix = (2 * rx + 1) * (2 * ry + 1)
@@ -662,7 +691,7 @@ def alsc_point(
 
     for k in range(NPARAMS):
         out[k] = p[k]
-    out[11] = float(updates)
+    out[F_ITERATIONS] = float(updates)
     if code == _OUTSIDE:
         return code
     # correlation of the template and the resampled patch of the last evaluation
@@ -672,7 +701,7 @@ def alsc_point(
         rho = mom[_STG] / math.sqrt(stt * vg)
     else:
         rho = nan
-    out[10] = rho
+    out[F_RHO] = rho
     if code == _SINGULAR:
         return code
     if not _factor(nmat, scale, chol):
@@ -689,8 +718,8 @@ def alsc_point(
     rhs[1] = 1.0
     _solve(chol, scale, rhs, step)
     cyy = s02 * step[1]
-    out[8] = math.sqrt(cxx)
-    out[9] = math.sqrt(cyy)
+    out[F_SIGMA_X] = math.sqrt(cxx)
+    out[F_SIGMA_Y] = math.sqrt(cyy)
     if code == _NOT_CONVERGED:
         return code
     if math.sqrt((p[0] - x0) ** 2 + (p[1] - y0) ** 2) > max_shift:
@@ -730,7 +759,7 @@ def alsc_step(
         out[k] = init[k]
     for k in range(NPARAMS, NFIELDS):
         out[k] = nan
-    out[11] = 0.0
+    out[F_ITERATIONS] = 0.0
     rx = radius
     ry = radius_y
     npix = (2 * rx + 1) * (2 * ry + 1)
@@ -765,13 +794,13 @@ def alsc_step(
         rho = mom[_STG] / math.sqrt(stt * vg)
     else:
         rho = nan
-    out[10] = rho
+    out[F_RHO] = rho
     if not _factor(nmat, scale, chol):
         return _SINGULAR
     _solve(chol, scale, rhs, step)
     for k in range(NPARAMS):
         out[k] = init[k] + step[k]
-    out[11] = 1.0
+    out[F_ITERATIONS] = 1.0
     s02 = mom[_SEE] / (npix - NPARAMS) if npix > NPARAMS else nan
     for k in range(NPARAMS):
         rhs[k] = 0.0
@@ -783,8 +812,8 @@ def alsc_step(
     rhs[1] = 1.0
     _solve(chol, scale, rhs, step)
     cyy = s02 * step[1]
-    out[8] = math.sqrt(cxx)
-    out[9] = math.sqrt(cyy)
+    out[F_SIGMA_X] = math.sqrt(cxx)
+    out[F_SIGMA_Y] = math.sqrt(cyy)
     sx = out[0] - init[0]
     sy = out[1] - init[1]
     if not (math.sqrt(sx * sx + sy * sy) < step_tol):
@@ -1021,7 +1050,7 @@ def alsc(
     codes = np.empty(n, dtype=np.int8)
     _alsc_many(b, d, gx, gy, c, r, start, out, codes, *options.kernel_args())
     cols_ = {name: out[:, k].copy() for k, name in enumerate(FIELDS)}
-    cols_["iterations"] = out[:, FIELDS.index("iterations")].astype(np.int32)
+    cols_["iterations"] = out[:, F_ITERATIONS].astype(np.int32)
     return AlscResult(**cols_, exit=codes)
 
 
@@ -1104,7 +1133,7 @@ def alsc_reference(
     p = np.array(init, dtype=np.float64).reshape(NPARAMS)
     out = np.full(NFIELDS, np.nan)
     out[:NPARAMS] = p
-    out[11] = 0.0
+    out[F_ITERATIONS] = 0.0
     bh, bw = b.shape
     if col - rx < 0 or col + rx >= bw or row - ry < 0 or row + ry >= bh:
         return out, Exit.OUTSIDE
@@ -1181,20 +1210,20 @@ def alsc_reference(
             break  # converged: the statistics are those of this evaluation
 
     out[:NPARAMS] = p
-    out[11] = updates
+    out[F_ITERATIONS] = updates
     if code == Exit.OUTSIDE:
         return out, code
     nmat, _, e, g = state
     tc, gc = t - t.mean(), g - g.mean()
     den = np.sqrt((tc @ tc) * (gc @ gc))
     rho = float(tc @ gc / den) if den > 0 else np.nan
-    out[10] = rho
+    out[F_RHO] = rho
     if code == Exit.SINGULAR:
         return out, code
     if not _positive_definite(nmat):
         return out, Exit.SINGULAR
     cov = (e @ e) / (npix - NPARAMS) * np.linalg.inv(nmat)[:2, :2]
-    out[8], out[9] = np.sqrt(cov[0, 0]), np.sqrt(cov[1, 1])
+    out[F_SIGMA_X], out[F_SIGMA_Y] = np.sqrt(cov[0, 0]), np.sqrt(cov[1, 1])
     if code == Exit.NOT_CONVERGED:
         return out, code
     if np.hypot(p[0] - x0, p[1] - y0) > o.max_shift:
@@ -1234,7 +1263,7 @@ def alsc_step_reference(
     p = np.array(init, dtype=np.float64).reshape(NPARAMS)
     out = np.full(NFIELDS, np.nan)
     out[:NPARAMS] = p
-    out[11] = 0.0
+    out[F_ITERATIONS] = 0.0
     bh, bw = b.shape
     if col - rx < 0 or col + rx >= bw or row - ry < 0 or row + ry >= bh:
         return out, Exit.OUTSIDE
@@ -1276,15 +1305,15 @@ def alsc_step_reference(
     tc, gc = t - t.mean(), g - g.mean()
     den = np.sqrt((tc @ tc) * (gc @ gc))
     rho = float(tc @ gc / den) if den > 0 else np.nan
-    out[10] = rho
+    out[F_RHO] = rho
     if not _positive_definite(nmat):
         return out, Exit.SINGULAR
     step = np.linalg.solve(nmat, design.T @ e)
     q = p + step
     out[:NPARAMS] = q
-    out[11] = 1.0
+    out[F_ITERATIONS] = 1.0
     cov = (e @ e) / (npix - NPARAMS) * np.linalg.inv(nmat)[:2, :2]
-    out[8], out[9] = np.sqrt(cov[0, 0]), np.sqrt(cov[1, 1])
+    out[F_SIGMA_X], out[F_SIGMA_Y] = np.sqrt(cov[0, 0]), np.sqrt(cov[1, 1])
     shift = np.hypot(step[0], step[1])
     if not shift < step_tol:
         return out, Exit.NOT_CONVERGED

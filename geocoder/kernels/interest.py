@@ -21,6 +21,21 @@ import numba
 import numpy as np
 from scipy import ndimage
 
+# Defaults of the operator and the point selection (seed 000 sec. 4.4.1), defined once here and
+# used by :class:`geocoder.pipeline.detect.InterestOptions`.
+#: Odd size of the pixel block the normal matrix is summed over.
+DEFAULT_WINDOW = 7
+#: Smallest roundness ``q`` of a point.
+DEFAULT_Q_MIN = 0.25
+#: A point needs ``w > f * mean(w)``.
+DEFAULT_F = 1.5
+#: Radius of the non-maximum suppression.
+DEFAULT_RADIUS = 4
+#: Side of the square cells of the distribution.
+DEFAULT_CELL = 64
+#: Most points per cell.
+DEFAULT_CAP = 8
+
 
 @dataclass(frozen=True)
 class InterestPoints:
@@ -61,7 +76,7 @@ def _box_sum(a: np.ndarray, size: int) -> np.ndarray:
     return c[size:, size:] - c[:-size, size:] - c[size:, :-size] + c[:-size, :-size]
 
 
-def foerstner(image: np.ndarray, *, window: int = 7) -> tuple[np.ndarray, np.ndarray]:
+def foerstner(image: np.ndarray, *, window: int = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:
     """Foerstner interest value ``w`` and roundness ``q`` of every pixel (numba).
 
     Parameters
@@ -149,7 +164,7 @@ def _foerstner_kernel(img, window, w, q):  # pragma: no cover - compiled
                 q[r + k, c + k] = 4.0 * det / (tr * tr)
 
 
-def foerstner_reference(image: np.ndarray, *, window: int = 7) -> tuple[np.ndarray, np.ndarray]:
+def foerstner_reference(image: np.ndarray, *, window: int = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:
     """Numpy reference of :func:`foerstner` (box sums by cumulative sums), for the tests.
 
     Parameters
@@ -223,10 +238,10 @@ def select_points(
     q: np.ndarray,
     *,
     w_min: float,
-    q_min: float = 0.25,
-    radius: int = 4,
-    cell: int = 64,
-    cap: int = 8,
+    q_min: float = DEFAULT_Q_MIN,
+    radius: int = DEFAULT_RADIUS,
+    cell: int = DEFAULT_CELL,
+    cap: int = DEFAULT_CAP,
     core: tuple[int, int, int, int] | None = None,
     origin: tuple[int, int] = (0, 0),
     width: int | None = None,
@@ -298,12 +313,12 @@ def select_points(
 def detect(
     image: np.ndarray,
     *,
-    window: int = 7,
-    q_min: float = 0.25,
-    f: float = 1.5,
-    radius: int = 4,
-    cell: int = 64,
-    cap: int = 8,
+    window: int = DEFAULT_WINDOW,
+    q_min: float = DEFAULT_Q_MIN,
+    f: float = DEFAULT_F,
+    radius: int = DEFAULT_RADIUS,
+    cell: int = DEFAULT_CELL,
+    cap: int = DEFAULT_CAP,
 ) -> InterestPoints:
     """Interest points of a whole in-memory image (the reference for the tiled pipeline).
 

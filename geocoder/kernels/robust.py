@@ -12,8 +12,17 @@ Paderes, Mikhail & Foerstner (1984), eqs 14-22 and sec. 4.4.3.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
+
+
+class StopReason(StrEnum):
+    """Why :func:`robust_fit` stopped (a ``str``, so it compares equal to and prints as its value)."""
+
+    PRECISION = "precision"
+    MAX_ITERATIONS = "max_iterations"
+    TOO_FEW = "too_few"
 
 
 def weight_l1(v: np.ndarray) -> np.ndarray:
@@ -46,8 +55,9 @@ class RobustFit:
         Re-weighting iterations used.
     converged : bool
         Whether the parameter change fell below the required precision.
-    reason : str
-        Why the iteration stopped: ``"precision"``, ``"max_iterations"`` or ``"too_few"``.
+    reason : StopReason
+        Why the iteration stopped: ``PRECISION``, ``MAX_ITERATIONS`` or ``TOO_FEW`` (too few
+        observations kept for the fit).
     """
 
     coef: np.ndarray
@@ -56,7 +66,7 @@ class RobustFit:
     sigma0: float
     iterations: int
     converged: bool
-    reason: str
+    reason: StopReason
 
     @property
     def inliers(self) -> np.ndarray:
@@ -132,13 +142,13 @@ def robust_fit(
     if start is not None:
         coef = np.asarray(start, dtype=np.float64).copy()
         weights = w0 * weight_l1(_normalised(obs - basis @ coef, w0, w0 > 0))
-    reason, converged, it = "max_iterations", False, 0
+    reason, converged, it = StopReason.MAX_ITERATIONS, False, 0
     if np.count_nonzero(weights) < min_points:
-        return RobustFit(coef, np.zeros(n), obs.copy(), np.inf, 0, False, "too_few")
+        return RobustFit(coef, np.zeros(n), obs.copy(), np.inf, 0, False, StopReason.TOO_FEW)
     for it in range(1, max_iterations + 1):
         new = _solve(basis, obs, weights)
         if new is None:
-            reason = "too_few"
+            reason = StopReason.TOO_FEW
             break
         change = np.abs(new[precision_rows] - coef[precision_rows]).max()
         coef = new
@@ -151,18 +161,18 @@ def robust_fit(
         if weights.any():
             weights[weights < drop_fraction * weights[weights > 0].mean()] = 0.0
         if np.count_nonzero(weights) < min_points:
-            reason = "too_few"
+            reason = StopReason.TOO_FEW
             break
         if it > l1_iterations and change < precision:
-            reason, converged = "precision", True
+            reason, converged = StopReason.PRECISION, True
             break
     residuals = obs - basis @ coef
     alive = weights > 0
-    if reason == "too_few":
+    if reason == StopReason.TOO_FEW:
         return RobustFit(coef, np.zeros(n), residuals, np.inf, it, False, reason)
     survivors = alive & (_normalised(residuals, w0, alive) < test)
     if np.count_nonzero(survivors) < min_points:
-        return RobustFit(coef, np.zeros(n), residuals, np.inf, it, False, "too_few")
+        return RobustFit(coef, np.zeros(n), residuals, np.inf, it, False, StopReason.TOO_FEW)
     final_w = np.where(survivors, 1.0 if final_equal_weights else w0, 0.0)
     new = _solve(basis, obs, final_w)
     if new is not None:

@@ -10,6 +10,7 @@ pixels, seed 003 sec. 3). Works on small in-memory overviews; the caller makes t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
@@ -17,24 +18,41 @@ from ..errors import MatchingError
 from ..kernels.phasecorr import estimate_similarity, phase_correlation
 from ..kernels.polynomial import PolyMap
 from ..kernels.resample import sample
+from ..kernels.robust import StopReason
 
 #: smallest normalised phase-correlation peak taken as a real match
 MIN_PEAK = 0.03
+
+
+class Hypothesis(StrEnum):
+    """Where a coarse alignment starts from."""
+
+    GEOREFERENCE = "georeference"
+    FOURIER_MELLIN = "fourier-mellin"
+    TRANSLATION = "translation"
 
 
 @dataclass(frozen=True)
 class CoarseAlignment:
     """Affine prediction base pixel -> distorted pixel (full-resolution frames).
 
-    ``method`` says where it came from (``georeference``, ``fourier-mellin``, with
-    ``+shift`` when the phase correlation corrected it), ``factor`` is the pyramid level
-    (overview pixel = factor x factor pixels) and ``peak`` the final correlation peak.
+    ``start`` says where it came from, ``shifted`` whether the phase correlation corrected
+    its translation, ``affine`` whether local phase correlations refined it to a full affine
+    (see :attr:`method`); ``factor`` is the pyramid level (overview pixel = factor x factor
+    pixels) and ``peak`` the final correlation peak.
     """
 
     matrix: np.ndarray
-    method: str
+    start: Hypothesis
+    shifted: bool
+    affine: bool
     factor: int
     peak: float
+
+    @property
+    def method(self) -> str:
+        """The start with ``+shift`` and ``+affine`` for the refinements made (as reported)."""
+        return str(self.start) + ("+shift" if self.shifted else "") + ("+affine" if self.affine else "")
 
     @property
     def mapping(self) -> PolyMap:
@@ -158,7 +176,7 @@ def refine_affine(base: np.ndarray, dist: np.ndarray, matrix: np.ndarray, *, gri
         return _h(matrix)
     cx, cy = np.asarray(cx), np.asarray(cy)
     corr = fit_polymap(cx, cy, cx + np.asarray(sx), cy + np.asarray(sy), order=1, weights=np.asarray(peaks), min_points=4)
-    if corr.fit_info.reason == "too_few":
+    if corr.fit_info.reason == StopReason.TOO_FEW:
         return _h(matrix)
     # correction as a 3x3 matrix in base coordinates: p -> corr(p)
     ex, ey = corr(np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]))
@@ -196,34 +214,34 @@ def align_overviews(
     """
     o = _overview_frame(factor)
     o_inv = np.linalg.inv(o)
-    hypotheses: list[tuple[str, np.ndarray]] = []
+    hypotheses: list[tuple[Hypothesis, np.ndarray]] = []
     if prior is not None:
-        hypotheses.append(("georeference", o_inv @ _h(prior) @ o))
+        hypotheses.append((Hypothesis.GEOREFERENCE, o_inv @ _h(prior) @ o))
     else:
         sim = estimate_similarity(base, dist)
         if np.all(np.isfinite(sim.matrix)):
-            hypotheses.append(("fourier-mellin", _h(sim.matrix)))
-        hypotheses.append(("translation", np.eye(3)))
+            hypotheses.append((Hypothesis.FOURIER_MELLIN, _h(sim.matrix)))
+        hypotheses.append((Hypothesis.TRANSLATION, np.eye(3)))
     best = None
     for name, start in hypotheses:
-        refined, peak = refine_translation(base, dist, start, local=name == "georeference")
-        if peak >= min_peak:
+        refined, peak = refine_translation(base, dist, start, local=name == Hypothesis.GEOREFERENCE)
+        shifted = peak >= min_peak
+        if shifted:
             again, peak2 = refine_translation(base, dist, refined, local=True)
             if peak2 >= peak:
                 refined, peak = again, peak2
-            name += "+shift"
         else:
             refined = start
-        if best is None or peak > best[2]:
-            best = (name, refined, peak)
-    name, matrix, peak = best
+        if best is None or peak > best[3]:
+            best = (name, shifted, refined, peak)
+    name, shifted, matrix, peak = best
     if peak < min_peak and prior is None:
         raise MatchingError(f"no overlap found between the images (best correlation peak {peak:.3f} < {min_peak})")
-    if peak >= min_peak:
+    affine = peak >= min_peak
+    if affine:
         for _ in range(2):
             matrix = refine_affine(base, dist, matrix, min_peak=min_peak)
         _, peak_after = refine_translation(base, dist, matrix, local=True)
-        name += "+affine"
         peak = max(peak, peak_after)
     full = o @ matrix @ o_inv
-    return CoarseAlignment(matrix=full[:2], method=name, factor=factor, peak=float(peak))
+    return CoarseAlignment(matrix=full[:2], start=name, shifted=shifted, affine=affine, factor=factor, peak=float(peak))

@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from ..kernels.correlate import correlation, extract_patches, pair_weight, refine_shift, warped_patches
 from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap, fit_polymap
-from ..kernels.robust import robust_fit
+from ..kernels.robust import StopReason, robust_fit
 from .tiepoints import TiePoints
 
 
@@ -122,13 +122,13 @@ def correspond(
     weight = np.where(np.isfinite(weight), weight, np.nanmax(np.where(np.isfinite(weight), weight, 0)))
     obs = np.stack([dist_points.x[jj] - px[ii], dist_points.y[jj] - py[ii]], axis=1)
     shift = robust_fit(np.ones((ii.size, 1)), obs, weight, min_points=opts.min_pairs)
-    if shift.reason == "too_few":
+    if shift.reason == StopReason.TOO_FEW:
         return empty, TileMatchStats(**stats, reason="robust shift failed")
     start = np.vstack([shift.coef, np.zeros((2, 2))])  # the shift, as an affine
     local = fit_polymap(base_points.x[ii], base_points.y[ii], obs[:, 0], obs[:, 1], order=1, weights=weight,
                         min_points=opts.min_pairs, start=start)
     affine = local.fit_info
-    if affine.reason == "too_few":
+    if affine.reason == StopReason.TOO_FEW:
         return empty, TileMatchStats(**stats, reason="robust affine failed")
     good = affine.inliers
     resid = np.hypot(*affine.residuals.T)
@@ -197,7 +197,7 @@ def correspond_guided(
     if len(tp) >= opts.min_pairs:
         qx, qy = predict(tp.base_x, tp.base_y)
         fit = fit_polymap(tp.base_x, tp.base_y, tp.dist_x - qx, tp.dist_y - qy, order=1, min_points=opts.min_pairs)
-        if fit.fit_info.reason != "too_few":
+        if fit.fit_info.reason != StopReason.TOO_FEW:
             tp = tp.select(fit.fit_info.inliers)
     stats["robust"] = len(tp)
     return tp, TileMatchStats(**stats, reason="ok")

@@ -22,11 +22,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..kernels.alsc import AlscOptions, alsc_point, alsc_step
+from ..kernels.alsc import F_A11, F_A21, F_X, F_Y, NFIELDS, NPARAMS, AlscOptions, Exit, alsc_point, alsc_step
 
 __all__ = ["fill_lines", "fill_window", "fill_reference"]
 
-_NOT_CONVERGED = 3
+_ACCEPTED = int(Exit.ACCEPTED)
+_NOT_CONVERGED = int(Exit.NOT_CONVERGED)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -39,7 +40,7 @@ def fill_lines(
     Parameters
     ----------
     base, dist, grad_x, grad_y : 2-D float32 windows (see :func:`~geocoder.kernels.alsc.alsc_point`).
-    params : float64 (h, w, 12)
+    params : float64 (h, w, NFIELDS)
         ALSC fields of the window (positions in the distorted window's frame); the lattice
         columns hold the matches of the region growing; filled in place.
     code : int8 (h, w)
@@ -55,21 +56,21 @@ def fill_lines(
         As for :func:`~geocoder.kernels.alsc.alsc_point`.
     """
     h, w = code.shape
-    out = np.empty(12, np.float64)
-    init = np.empty(8, np.float64)
+    out = np.empty(NFIELDS, np.float64)
+    init = np.empty(NPARAMS, np.float64)
     new = 0
     for r in range(region[0], region[1]):
         for c in range(region[2], region[3]):
             off = (c - col_origin) % col_step
-            if off == 0 or code[r, c] == 0:
+            if off == 0 or code[r, c] == _ACCEPTED:
                 continue
             cl = c - off
             cr = cl + col_step
-            left = cl >= 0 and code[r, cl] == 0
-            right = cr < w and code[r, cr] == 0
+            left = cl >= 0 and code[r, cl] == _ACCEPTED
+            right = cr < w and code[r, cr] == _ACCEPTED
             if left and right:
                 wr = off / col_step
-                for j in range(8):
+                for j in range(NPARAMS):
                     init[j] = (1.0 - wr) * params[r, cl, j] + wr * params[r, cr, j]
                 e = alsc_step(
                     base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, step_tol, max_shift,
@@ -83,9 +84,9 @@ def fill_lines(
             elif left or right:
                 pc = cl if left else cr
                 du = float(c - pc)
-                init[0] = params[r, pc, 0] + params[r, pc, 2] * du
-                init[1] = params[r, pc, 1] + params[r, pc, 4] * du
-                for j in range(2, 8):
+                init[F_X] = params[r, pc, F_X] + params[r, pc, F_A11] * du
+                init[F_Y] = params[r, pc, F_Y] + params[r, pc, F_A21] * du
+                for j in range(F_A11, NPARAMS):
                     init[j] = params[r, pc, j]
                 e = alsc_point(
                     base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift,
@@ -94,8 +95,8 @@ def fill_lines(
             else:
                 continue
             code[r, c] = e
-            if e == 0:
-                for j in range(12):
+            if e == _ACCEPTED:
+                for j in range(NFIELDS):
                     params[r, c, j] = out[j]
                 new += 1
     return new

@@ -10,6 +10,7 @@ runs in numba: no Python per pixel.
 State arrays are window-sized: ``params`` (h, w, 12) holds the ALSC fields
 (:data:`geocoder.kernels.alsc.FIELDS`, positions in the distorted window's frame) and
 ``code`` (h, w) int8 the exit code of the last attempt (``UNVISITED`` before any).
+Seeds are rows of :data:`SEED_COLUMNS` (see :func:`seed_rows`).
 """
 
 from __future__ import annotations
@@ -17,10 +18,39 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..kernels.alsc import AlscOptions, alsc_point
+from ..kernels.alsc import (
+    F_A11,
+    F_A12,
+    F_A21,
+    F_A22,
+    F_SIGMA_X,
+    F_SIGMA_Y,
+    F_X,
+    F_Y,
+    FIELDS,
+    NFIELDS,
+    NPARAMS,
+    AlscOptions,
+    Exit,
+    alsc_point,
+)
+
+__all__ = ["NFIELDS", "SEED_COLUMNS", "SEED_COL", "SEED_PARAMS", "SEED_ROW", "SEED_WIDTH", "SEED_X", "SEED_Y",
+           "UNVISITED", "grow", "grow_window", "seed_rows"]
 
 UNVISITED = -1
-NFIELDS = 12
+
+#: Columns of a seed row: the pixel (row, col) of the base window, then the start parameters
+#: of its match in the order of :data:`geocoder.kernels.alsc.FIELDS` (distorted window frame).
+SEED_COLUMNS = ("row", "col", *FIELDS[:NPARAMS])
+SEED_ROW = SEED_COLUMNS.index("row")
+SEED_COL = SEED_COLUMNS.index("col")
+SEED_PARAMS = SEED_COLUMNS.index(FIELDS[0])  # first of the NPARAMS start parameters
+SEED_X = SEED_PARAMS + F_X
+SEED_Y = SEED_PARAMS + F_Y
+SEED_WIDTH = len(SEED_COLUMNS)
+
+_ACCEPTED = int(Exit.ACCEPTED)
 
 _N4 = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 _N8 = np.array([[0, 1], [1, 0], [0, -1], [-1, 0], [1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=np.int64)
@@ -74,7 +104,7 @@ def _heap_pop(keys, items, parents, size):
 
 @numba.njit(nogil=True, cache=True)
 def _quality(p):
-    return max(p[8], p[9])  # larger of sigma_x, sigma_y: smaller is better
+    return max(p[F_SIGMA_X], p[F_SIGMA_Y])  # smaller is better
 
 
 @numba.njit(nogil=True, cache=True)
@@ -87,8 +117,9 @@ def grow(
     Parameters
     ----------
     base, dist, grad_x, grad_y : 2-D float32 windows (see :func:`~geocoder.kernels.alsc.alsc_point`).
-    seeds : float64 (k, 10)
-        ``row, col`` (base window) then the 8 start parameters (distorted window frame).
+    seeds : float64 (k, SEED_WIDTH)
+        Rows of :data:`SEED_COLUMNS`: ``row, col`` (base window) then the start parameters
+        (distorted window frame).
     params, code, tries : window-sized state, updated in place.
     region : int64[4]
         ``row0, row1, col0, col1`` (half open, base window) where matches may be made.
@@ -108,22 +139,22 @@ def grow(
     parents = np.empty(cap, np.int64)
     size = 0
     out = np.empty(NFIELDS, np.float64)
-    init = np.empty(8, np.float64)
+    init = np.empty(NPARAMS, np.float64)
     new = 0
     r0, r1, c0, c1 = region[0], region[1], region[2], region[3]
     # seeds first, in the order given; an accepted seed is queued as its own parent
     for k in range(seeds.shape[0]):
-        r, c = int(seeds[k, 0]), int(seeds[k, 1])
-        for j in range(8):
-            init[j] = seeds[k, 2 + j]
+        r, c = int(seeds[k, SEED_ROW]), int(seeds[k, SEED_COL])
+        for j in range(NPARAMS):
+            init[j] = seeds[k, SEED_PARAMS + j]
         # a seed between lattice columns moves to the lattice column on its left, its start
         # predicted through its own affine
         shift = (c - lattice_origin[1]) % (step * col_step) if col_step > 1 else 0
         if shift != 0:
             c -= shift
-            init[0] -= init[2] * shift
-            init[1] -= init[4] * shift
-        if r < r0 or r >= r1 or c < c0 or c >= c1 or code[r, c] == 0:
+            init[F_X] -= init[F_A11] * shift
+            init[F_Y] -= init[F_A21] * shift
+        if r < r0 or r >= r1 or c < c0 or c >= c1 or code[r, c] == _ACCEPTED:
             continue
         if (r - lattice_origin[0]) % step != 0 or (c - lattice_origin[1]) % step != 0:
             continue
@@ -132,7 +163,7 @@ def grow(
             max_sigma, min_det,
         )
         code[r, c] = e
-        if e == 0:
+        if e == _ACCEPTED:
             params[r, c, :] = out
             new += 1
             keys, items, parents, size = _heap_push(keys, items, parents, size, _quality(out), r * w + c, -1)
@@ -141,14 +172,14 @@ def grow(
         r, c = item // w, item % w
         if parent >= 0:
             # a prediction for (r, c) from an accepted neighbour: match it
-            if code[r, c] == 0 or tries[r, c] >= max_tries:
+            if code[r, c] == _ACCEPTED or tries[r, c] >= max_tries:
                 continue
             pr, pc = parent // w, parent % w
             du, dv = float(c - pc), float(r - pr)
             p = params[pr, pc]
-            init[0] = p[0] + p[2] * du + p[3] * dv
-            init[1] = p[1] + p[4] * du + p[5] * dv
-            for j in range(2, 8):
+            init[F_X] = p[F_X] + p[F_A11] * du + p[F_A12] * dv
+            init[F_Y] = p[F_Y] + p[F_A21] * du + p[F_A22] * dv
+            for j in range(F_A11, NPARAMS):
                 init[j] = p[j]
             tries[r, c] += 1
             e = alsc_point(
@@ -156,7 +187,7 @@ def grow(
                 min_rho, max_sigma, min_det,
             )
             code[r, c] = e
-            if e != 0:
+            if e != _ACCEPTED:
                 continue
             params[r, c, :] = out
             new += 1
@@ -167,7 +198,7 @@ def grow(
             cc = c + neighbours[n, 1] * step * col_step
             if rr < r0 or rr >= r1 or cc < c0 or cc >= c1:
                 continue
-            if code[rr, cc] == 0 or tries[rr, cc] >= max_tries:
+            if code[rr, cc] == _ACCEPTED or tries[rr, cc] >= max_tries:
                 continue
             keys, items, parents, size = _heap_push(keys, items, parents, size, key, rr * w + cc, r * w + c)
     return new
@@ -202,3 +233,27 @@ def grow_window(
             offsets, int(max_tries), int(col_step), *o.kernel_args(),
         )
     )
+
+
+def seed_rows(row: np.ndarray, col: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """Seed rows (:data:`SEED_COLUMNS`) from pixels and the start parameters of their matches.
+
+    Parameters
+    ----------
+    row, col : ndarray, shape (n,)
+        Pixel of every seed.
+    params : ndarray, shape (n, NPARAMS)
+        Start parameters in the order of :data:`geocoder.kernels.alsc.FIELDS`.
+
+    Returns
+    -------
+    ndarray of float64, shape (n, SEED_WIDTH)
+    """
+    params = np.asarray(params)
+    if params.ndim != 2 or params.shape[1] != NPARAMS:
+        raise ValueError(f"params must have shape (n, {NPARAMS}), got {params.shape}")
+    out = np.empty((params.shape[0], SEED_WIDTH), dtype=np.float64)
+    out[:, SEED_ROW] = row
+    out[:, SEED_COL] = col
+    out[:, SEED_PARAMS : SEED_PARAMS + NPARAMS] = params
+    return out

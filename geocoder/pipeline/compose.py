@@ -111,7 +111,7 @@ def _open_field(field, what: str) -> xr.Dataset:
         try:
             ds = xr.open_zarr(location, consolidated=False, decode_coords="all")
         except (FileNotFoundError, ValueError, KeyError, OSError) as exc:
-            raise InputError(location, f"cannot be opened as the {what} displacement store ({type(exc).__name__}: {exc})") from None
+            raise InputError(location, f"cannot be opened as the {what} displacement store ({type(exc).__name__}: {exc})") from exc
     source = ds.encoding.get("source", "the dataset") if isinstance(field, xr.Dataset) else os.fspath(field)
     for k in ("dx", "dy"):
         if k not in ds or ds[k].dims != ("y", "x"):

@@ -29,11 +29,24 @@ import dask.array as da
 import numpy as np
 import zarr
 
-from ..kernels.alsc import FIELDS, AlscOptions, gradients
+from ..kernels.alsc import (
+    F_A11,
+    F_A12,
+    F_A21,
+    F_A22,
+    F_GAIN,
+    F_OFFSET,
+    F_X,
+    F_Y,
+    FIELDS,
+    NPARAMS,
+    AlscOptions,
+    gradients,
+)
 from ..kernels.polynomial import PolyMap
 from ..match.densify import densify_window, lattice_start
 from ..match.fill import fill_window
-from ..match.grow import NFIELDS, UNVISITED, grow_window
+from ..match.grow import NFIELDS, SEED_COL, SEED_ROW, SEED_WIDTH, SEED_X, SEED_Y, UNVISITED, grow_window, seed_rows
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
 from ..tiles import Tile, TileGrid
@@ -211,17 +224,17 @@ def _write_core(g, tile: Tile, slot: int, k: int, values: np.ndarray, code: np.n
 
 
 def seeds_from_tiepoints(tp: TiePoints, mapping: PolyMap) -> np.ndarray:
-    """Seed rows ``(row, col, x, y, a11, a12, a21, a22, offset, gain)`` in global frames.
+    """Seed rows (:data:`geocoder.match.grow.SEED_COLUMNS`) in global frames.
 
     The affine starts from the polynomial's Jacobian, the radiometry from identity.
     """
     tp = tp.select(tp.inlier)
     jac = mapping.jacobian(tp.base_x, tp.base_y)
-    n = len(tp)
-    return np.column_stack([
-        tp.base_y, tp.base_x, tp.dist_x, tp.dist_y,
-        jac[:, 0, 0], jac[:, 0, 1], jac[:, 1, 0], jac[:, 1, 1], np.zeros(n), np.ones(n),
-    ])
+    start = np.empty((len(tp), NPARAMS))
+    start[:, F_X], start[:, F_Y] = tp.dist_x, tp.dist_y
+    start[:, F_A11], start[:, F_A12], start[:, F_A21], start[:, F_A22] = jac[:, 0, 0], jac[:, 0, 1], jac[:, 1, 0], jac[:, 1, 1]
+    start[:, F_OFFSET], start[:, F_GAIN] = 0.0, 1.0
+    return seed_rows(tp.base_y, tp.base_x, start)
 
 
 def _route(seeds: np.ndarray, grid: TileGrid, exclude: str | None = None) -> dict[str, np.ndarray]:
@@ -232,7 +245,7 @@ def _route(seeds: np.ndarray, grid: TileGrid, exclude: str | None = None) -> dic
     for tile in grid:
         if tile.key == exclude:
             continue
-        m = tile.contains(seeds[:, 1], seeds[:, 0])
+        m = tile.contains(seeds[:, SEED_COL], seeds[:, SEED_ROW])
         if m.any():
             out[tile.key] = seeds[m]
     return out
@@ -248,13 +261,13 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     h, w = shape
     g = zarr.open_group(state, mode="r+")
     core_code = _read_core(g, tile, slot, k, "code")
-    rows = seeds[:, 0].astype(np.int64) - tile.row0
-    cols = seeds[:, 1].astype(np.int64) - tile.col0
+    rows = seeds[:, SEED_ROW].astype(np.int64) - tile.row0
+    cols = seeds[:, SEED_COL].astype(np.int64) - tile.col0
     incore = (rows >= 0) & (rows < core_code.shape[0]) & (cols >= 0) & (cols < core_code.shape[1])
     useful = ~incore.copy()
     useful[incore] = core_code[rows[incore], cols[incore]] != 0
     if not useful.any():
-        return 0, np.empty((0, 10)), False
+        return 0, np.empty((0, SEED_WIDTH)), False
     # growth region (global), and the base window around it with the template margin
     rr0, rr1, rc0, rc1 = tile.window(opts.halo)
     rr0, rr1, rc0, rc1 = max(rr0, 0), min(rr1, h), max(rc0, 0), min(rc1, w)
@@ -278,16 +291,16 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     core[..., 1] += ys
     code[csl] = core_code
     local = seeds[useful].copy()
-    local[:, 0] -= wr0
-    local[:, 1] -= wc0
-    local[:, 2] -= dc0
-    local[:, 3] -= dr0
+    local[:, SEED_ROW] -= wr0
+    local[:, SEED_COL] -= wc0
+    local[:, SEED_X] -= dc0
+    local[:, SEED_Y] -= dr0
     region = (rr0 - wr0, rr1 - wr0, rc0 - wc0, rc1 - wc0)
     new = grow_window(base, dist, grad, local, params, code, region, options=opts.growth_alsc, step=opts.step,
                       lattice_origin=(-wr0 % opts.step, -wc0 % (opts.step * opts.col_step)), neighbours=opts.neighbours,
                       max_tries=opts.max_tries, col_step=opts.col_step)
     if new == 0:
-        return 0, np.empty((0, 10)), False
+        return 0, np.empty((0, SEED_WIDTH)), False
     _, within = _core_columns(tile, k)
     stored = core[:, within]
     out = np.moveaxis(stored, -1, 0).astype(np.float32)
@@ -298,8 +311,10 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     halo = code == 0
     halo[csl] = False
     hr, hc = np.nonzero(halo)
-    p = params[hr, hc]
-    outgoing = np.column_stack([hr + wr0, hc + wc0, p[:, 0] + dc0, p[:, 1] + dr0, p[:, 2:8]])
+    start = params[hr, hc, :NPARAMS]
+    start[:, F_X] += dc0
+    start[:, F_Y] += dr0
+    outgoing = seed_rows(hr + wr0, hc + wc0, start)
     return new, outgoing, True
 
 

@@ -18,7 +18,17 @@ import dask
 import dask.array as da
 import numpy as np
 
-from ..kernels.interest import InterestPoints, foerstner, select_points
+from ..kernels.interest import (
+    DEFAULT_CAP,
+    DEFAULT_CELL,
+    DEFAULT_F,
+    DEFAULT_Q_MIN,
+    DEFAULT_RADIUS,
+    DEFAULT_WINDOW,
+    InterestPoints,
+    foerstner,
+    select_points,
+)
 from ..scene import WindowReader
 from ..tiles import TileGrid
 from .job import Job, run_tiles
@@ -28,12 +38,12 @@ from .job import Job, run_tiles
 class InterestOptions:
     """Options of the interest operator (seed 000 sec. 4.4.1)."""
 
-    window: int = 7
-    q_min: float = 0.25
-    f: float = 1.5
-    radius: int = 4
-    cell: int = 64
-    cap: int = 8
+    window: int = DEFAULT_WINDOW
+    q_min: float = DEFAULT_Q_MIN
+    f: float = DEFAULT_F
+    radius: int = DEFAULT_RADIUS
+    cell: int = DEFAULT_CELL
+    cap: int = DEFAULT_CAP
 
     @property
     def halo(self) -> int:

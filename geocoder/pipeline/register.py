@@ -22,14 +22,14 @@ import xarray as xr
 import zarr
 
 from .. import progress, storage
+from ..conventions import georeference, pixel_grid, status_attrs
 from ..errors import InputError, MatchingError
 from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap, exponents
-from ..multiscales import write_overviews
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
-from ..conventions import georeference, pixel_grid, status_attrs
+from ..multiscales import write_overviews
 from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
@@ -251,7 +251,7 @@ def find_tiepoints(
         match = partial(match_tiles, base_reader, dist_reader, grid, bpts, dpts, band=band, dist_band=dband, opts=copts, job=job)
         found, _ = match(predict, stage="correspondence (pass 1)")
         summary.pass_tiepoints.append(len(found))
-        if len(found) < opts.min_tiepoints and coarse.method.endswith("+affine"):
+        if len(found) < opts.min_tiepoints and coarse.affine:
             found, _ = match(predict, guided=True, stage="correspondence (pass 1, guided)")
             summary.pass_tiepoints.append(len(found))
         if len(found) < opts.min_tiepoints:
@@ -521,11 +521,11 @@ def _job_key(base, distorted, bscene, dscene, opts: RegisterOptions, nodata, dis
         except OSError:
             return os.fspath(src)
 
-    import geocoder
+    from .._version import __version__
 
     return fingerprint(
         base=identity(base, bscene), distorted=identity(distorted, dscene), options=repr(opts),
-        nodata=[nodata, dist_nodata], version=geocoder.__version__,
+        nodata=[nodata, dist_nodata], version=__version__,
     )
 
 

@@ -76,11 +76,11 @@ MIN_NEIGHBOURS = 2
 #: Normal-distribution consistency factor of the median absolute deviation.
 _MAD_SCALE = 1.4826
 
-_OUTSIDE = np.uint8(Status.OUTSIDE)
-_MATCHED = np.uint8(Status.MATCHED)
-_FILLED = np.uint8(Status.FILLED)
-_BLUNDER = np.uint8(Status.BLUNDER)
-_NO_TEXTURE = np.uint8(Status.NO_TEXTURE)
+# Status codes as plain ints: numba freezes module-level ints as compile-time constants.
+_MATCHED = int(Status.MATCHED)
+_FILLED = int(Status.FILLED)
+_BLUNDER = int(Status.BLUNDER)
+_NO_TEXTURE = int(Status.NO_TEXTURE)
 
 
 @dataclass(frozen=True)
@@ -266,15 +266,15 @@ def _first_pass(dx, dy, st, half, kk, min_dev, min_nb, flag, sx, sy):  # pragma:
     cnt = 0
     found = False
     for j in range(min(half, nx)):
-        if st[j] == 1:
+        if st[j] == _MATCHED:
             _insert(sx, cnt, np.float64(dx[j]))
             _insert(sy, cnt, np.float64(dy[j]))
             cnt += 1
     for c in range(nx):
         j = c + half  # enters the window
         i = c - half - 1  # leaves it
-        come = j < nx and st[j] == 1
-        go = i >= 0 and st[i] == 1
+        come = j < nx and st[j] == _MATCHED
+        go = i >= 0 and st[i] == _MATCHED
         if come and go:
             _replace(sx, cnt, np.float64(dx[i]), np.float64(dx[j]))
             _replace(sy, cnt, np.float64(dy[i]), np.float64(dy[j]))
@@ -287,7 +287,7 @@ def _first_pass(dx, dy, st, half, kk, min_dev, min_nb, flag, sx, sy):  # pragma:
             _remove(sy, cnt, np.float64(dy[i]))
             cnt -= 1
         flag[c] = False
-        if st[c] != 1 or cnt - 1 < min_nb:
+        if st[c] != _MATCHED or cnt - 1 < min_nb:
             continue
         # Exact shortcut: the pixel's own value and the neighbours' median both lie in the
         # window's range, so a range within min_dev (<= the threshold) rules a blunder out.
@@ -334,12 +334,12 @@ def _next_pass(dx, dy, st, half, kk, min_dev, min_nb, check, flag, bx, by):  # p
     found = False
     for c in range(nx):
         flag[c] = False
-        if st[c] != 1 or not check[c]:
+        if st[c] != _MATCHED or not check[c]:
             continue
         n = 0
         lox = hix = loy = hiy = 0.0
         for j in range(max(c - half, 0), min(c + half + 1, nx)):
-            if j != c and st[j] == 1:
+            if j != c and st[j] == _MATCHED:
                 vx = np.float64(dx[j])
                 vy = np.float64(dy[j])
                 if n == 0:
@@ -367,8 +367,8 @@ def _next_pass(dx, dy, st, half, kk, min_dev, min_nb, check, flag, bx, by):  # p
 def _blunders_row(dx, dy, st, half, kk, min_dev, passes, min_nb, check, flag, bx, by):  # pragma: no cover - compiled
     nx = st.shape[0]
     for c in range(nx):  # step 0: non-finite matches
-        if st[c] == 1 and not (np.isfinite(dx[c]) and np.isfinite(dy[c])):
-            st[c] = 3
+        if st[c] == _MATCHED and not (np.isfinite(dx[c]) and np.isfinite(dy[c])):
+            st[c] = _BLUNDER
             dx[c] = np.nan
             dy[c] = np.nan
     for p in range(passes):
@@ -385,7 +385,7 @@ def _blunders_row(dx, dy, st, half, kk, min_dev, passes, min_nb, check, flag, bx
             check[c] = False
         for c in range(nx):
             if flag[c]:
-                st[c] = 3
+                st[c] = _BLUNDER
                 dx[c] = np.nan
                 dy[c] = np.nan
                 for j in range(max(c - half, 0), min(c + half + 1, nx)):
@@ -394,7 +394,7 @@ def _blunders_row(dx, dy, st, half, kk, min_dev, passes, min_nb, check, flag, bx
 
 @numba.njit(nogil=True, cache=True)
 def _is_hole(s):  # pragma: no cover - compiled
-    return s == 2 or s == 3 or s == 4
+    return s == _FILLED or s == _BLUNDER or s == _NO_TEXTURE
 
 
 @numba.njit(nogil=True, cache=True)
@@ -407,7 +407,7 @@ def _collect(st, start, step, reach, support, cols):  # pragma: no cover - compi
         if j < 0 or j >= nx:
             break
         s = st[j]
-        if s == 1:
+        if s == _MATCHED:
             cols[n] = j
             n += 1
             if n == support:
@@ -461,7 +461,7 @@ def _fill_row(dx, dy, st, max_gap, support, degree, left, right, a, b):  # pragm
         while c < nx and _is_hole(st[c]):
             c += 1
         e = c - 1  # hole [s, e]; c = e + 1
-        if e - s + 1 > max_gap or s == 0 or e == nx - 1 or st[s - 1] != 1 or st[e + 1] != 1:
+        if e - s + 1 > max_gap or s == 0 or e == nx - 1 or st[s - 1] != _MATCHED or st[e + 1] != _MATCHED:
             continue
         if _collect(st, s - 1, -1, reach, support, left) < support:
             continue
@@ -504,7 +504,7 @@ def _fill_row(dx, dy, st, max_gap, support, degree, left, right, a, b):  # pragm
                 vy = vy * u + b[r, 1]
             dx[j] = vx
             dy[j] = vy
-            st[j] = 2
+            st[j] = _FILLED
 
 
 @numba.njit(nogil=True, cache=True)
