@@ -88,8 +88,6 @@ def test_polynomial_displacement_names_follow_the_mapping():
     assert {a.name for a in other}.isdisjoint(a.name for a in first)
 
 
-@pytest.mark.xfail(strict=True, reason="polynomial_displacement names its layers from mapping.coef only: two maps "
-                   "with the same coefficients about another centre (or scale) get the same keys")
 def test_polynomial_displacement_names_follow_the_centre():
     moved = PolyMap(coef=MAPPING.coef, order=1, centre=(100.0, 50.0), scale=1.0)
     assert polynomial_displacement(moved, GRID.chunks)[0].name != polynomial_displacement(MAPPING, GRID.chunks)[0].name

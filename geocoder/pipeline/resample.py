@@ -48,8 +48,10 @@ def _poly_block(block_info=None, *, mapping: PolyMap, component: int):
 
 def polynomial_displacement(mapping: PolyMap, chunks: tuple[tuple[int, ...], tuple[int, ...]]) -> tuple[da.Array, da.Array]:
     """Lazy ``dx, dy`` (float32, on the base grid) of a polynomial base -> distorted mapping."""
-    dx = da.map_blocks(_poly_block, chunks=chunks, dtype=np.float32, mapping=mapping, component=0, name=f"dx-poly-{da.core.tokenize(mapping.coef)}")
-    dy = da.map_blocks(_poly_block, chunks=chunks, dtype=np.float32, mapping=mapping, component=1, name=f"dy-poly-{da.core.tokenize(mapping.coef)}")
+    # the whole map (coefficients, order, centre, scale) and the chunks name the layers
+    token = da.core.tokenize(mapping.to_dict(), chunks)
+    dx = da.map_blocks(_poly_block, chunks=chunks, dtype=np.float32, mapping=mapping, component=0, name=f"dx-poly-{token}")
+    dy = da.map_blocks(_poly_block, chunks=chunks, dtype=np.float32, mapping=mapping, component=1, name=f"dy-poly-{token}")
     return dx, dy
 
 
