@@ -5,6 +5,9 @@
    Foerstner points and robust correspondence, tile-parallel): its footprint, and control
    points for the scenes allowed to have them.
 3. Every pair of scenes whose footprints overlap is matched the same way: tie points.
+   Steps 2 and 3 run as a few rounds for all pairs at once (:mod:`geocoder.mosaic.matching`):
+   the interest points of every scene in one stage, then per batch one stage each for the
+   coarse alignments and the correspondence passes, one task per base tile of every pair.
 4. The block (one :class:`~geocoder.adjust.models.MapPolynomial` per scene) is adjusted on
    one node with robust re-weighting; scenes tied to no control are reported and left out.
 5. The output grid (the reference's CRS and pixel, the union of the footprints) is written one
@@ -46,9 +49,8 @@ from ..kernels.polynomial import fit_polymap
 from ..multiscales import write_overviews
 from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
-from ..pipeline.detect import interest_points
 from ..pipeline.job import Job, JobRun, fingerprint
-from ..pipeline.register import RegisterOptions, RegisterSummary, _ingest, _Timer, find_tiepoints, job_directory
+from ..pipeline.register import RegisterOptions, _ingest, _Timer, job_directory
 from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
 from ..status import Status
@@ -57,6 +59,7 @@ from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
 from .heights import MapDEM, ref_to_scene_prior
+from .matching import PairSpec, match_pairs, scene_points
 from .projection import project_window
 from .radiometry import seam_step, solve_balance
 from .seamplan import plan_seams, read_labels
@@ -525,18 +528,14 @@ def mosaic(
         priors = [None if m is None else ref_to_scene_prior(m, m.initial_params(), transform, ref_shape, shapes[k], heights)
                   for k, m in enumerate(sensors)]
         threads = _threads(c)
+        images, image_readers = [ref, *opened], [ref_reader, *readers]
         with timer("interest points"):
-            names = ["reference", *(f"scene-{k}" for k in range(len(opened)))]
-            points = _concurrently(
-                lambda k: _points(job, names[k], ([ref] + opened)[k], ([ref_reader] + readers)[k], opts),
-                list(range(len(names))), "interest points (scenes)", threads)
-        ref_points, points = points[0], points[1:]
+            points = scene_points(job, ["reference", *(f"scene-{k}" for k in range(len(opened)))], images, image_readers,
+                                  opts)
         control, ref_to, to_ref, ref_tp = [], {}, {}, {}
         with timer("control points"):
-            found = _concurrently(
-                lambda k: _match(job, f"ref-{k}", key, ref, opened[k], ref_reader, readers[k], opts,
-                                 points=(ref_points, points[k]), prior=priors[k]),
-                list(range(len(opened))), "scenes on the reference", threads)
+            found = match_pairs(job, "control", [PairSpec(f"ref-{k}", 0, k + 1, priors[k]) for k in range(len(opened))],
+                                images, image_readers, points, opts)
             for k, result in enumerate(found):
                 if isinstance(result, GeocoderError):
                     summary.left_out[str(k)] = f"not found on the reference ({result})"
@@ -556,11 +555,9 @@ def mosaic(
             placed = sorted(ref_to)
             pairs = [(i, j) for a, i in enumerate(placed) for j in placed[a + 1:]
                      if _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j]) >= 0.05]
-            found = _concurrently(
-                lambda ij: _match(job, f"pair-{ij[0]}-{ij[1]}", key, opened[ij[0]], opened[ij[1]], readers[ij[0]],
-                                  readers[ij[1]], opts, prior=_affine_between(to_ref[ij[0]], ref_to[ij[1]], shapes[ij[0]]),
-                                  points=(points[ij[0]], points[ij[1]])),
-                pairs, "tie points (pairs)", threads)
+            found = match_pairs(job, "ties", [PairSpec(f"pair-{i}-{j}", i + 1, j + 1,
+                                                       _affine_between(to_ref[i], ref_to[j], shapes[i])) for i, j in pairs],
+                                images, image_readers, points, opts)
             for (i, j), result in zip(pairs, found):
                 if isinstance(result, GeocoderError):
                     summary.pairs.append({"i": i, "j": j, "ties": 0, "problem": str(result)})
@@ -719,24 +716,6 @@ def _affine_between(i_to_ref, ref_to_j, shape, samples: int = 9) -> np.ndarray:
     return np.linalg.lstsq(design, np.column_stack([jx, jy]), rcond=None)[0].T
 
 
-def _match(job: Job, name: str, key: str, base, dist, base_reader, dist_reader, opts: RegisterOptions, prior=None,
-           points=None):
-    """Tie points of one pair (the registration's stages), cached in a sub-job of ``job``.
-
-    Returns ``(tie points, mapping, coarse alignment)``, or the :class:`GeocoderError` that
-    says why the pair could not be matched.
-    """
-    sub = Job(job.file("pairs", name), key)
-    try:
-        summary = RegisterSummary(base=base.attrs.get("source", ""), distorted=dist.attrs.get("source", ""))
-        return find_tiepoints(base, dist, base_reader, dist_reader, opts, summary, _Timer(summary), sub, prior=prior,
-                              points=points)
-    except GeocoderError as exc:
-        return exc
-    finally:
-        sub.release()
-
-
 def _footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], margin: int = 16) -> tuple[int, int, int, int]:
     """``row0, row1, col0, col1`` (output pixels) around a scene's footprint, grown by ``margin``."""
     h, w = shape
@@ -877,12 +856,6 @@ def scene_positions(ds: xr.Dataset, store: str | os.PathLike) -> list[tuple[np.n
             f = {**f, "store": f"{os.fspath(store)}/{f['group']}"}
         out.append(_scene_xy(model, params, transform, window, f, tuple(ref), heights))
     return out
-
-
-def _points(job: Job, name: str, scene, reader, opts: RegisterOptions):
-    """Interest points of one scene, searched once for all its pairs (tiles kept by ``job``)."""
-    band = opts.band - 1
-    return interest_points(scene.data[band], opts.interest, job=job, name=name, reader=reader, band=band)
 
 
 def _threads(client) -> int:

@@ -1,0 +1,286 @@
+"""The mosaic's point finding: every scene's interest points and every pair's tie points, batched.
+
+The registration finds the points of one pair in a sequence of tile-parallel rounds (coarse
+alignment, correspondence pass 1, the guided passes). A block has hundreds of pairs; here each
+round runs once for ALL of them:
+
+1. :func:`scene_points`: the Foerstner candidates of every tile of every scene (and the
+   reference) in one :meth:`~geocoder.pipeline.job.Job.run_tiles` stage; each scene's
+   threshold ``f * mean(w)`` is applied on the client, so a scene's points are found once and
+   reused by every pair it is in.
+2. :func:`match_pairs`: the coarse alignments of all pairs in one stage (an overview shared
+   by many pairs, the reference's, is computed once), then every correspondence pass as one
+   stage holding one task per base tile of every pair still in play; the tie points are
+   gathered per pair and each pair's robust polynomial is fitted on the client.
+
+A pair goes through exactly the steps of :func:`geocoder.pipeline.register.find_tiepoints`
+(the same tasks, the same checks, the same errors): only the scheduling differs. Every task's
+result is kept by the job, so a killed run resumes at the round it was in.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import dask
+import numpy as np
+import xarray as xr
+
+from ..errors import GeocoderError, InputError, MatchingError
+from ..kernels.interest import InterestPoints
+from ..kernels.polynomial import PolyMap
+from ..match.coarse import CoarseAlignment
+from ..match.correspondence import correspond, correspond_guided
+from ..match.tiepoints import TiePoints
+from ..pipeline.coarse import _align, georeference_prior, overview
+from ..pipeline.correspond import distorted_window, fit_global
+from ..pipeline.detect import _above, _clipped, _window_candidates
+from ..pipeline.job import Job
+from ..pipeline.register import RegisterOptions, _check_overlap
+from ..scene import WindowReader
+from ..tiles import TileGrid
+
+
+@dataclass(frozen=True)
+class PairSpec:
+    """One pair to match: images ``base`` and ``dist`` (indices into the image list).
+
+    ``prior`` (2x3 affine base pixel -> distorted pixel) starts the coarse alignment in
+    place of the georeference, as in :func:`~geocoder.pipeline.coarse.coarse_alignment`.
+    """
+
+    name: str
+    base: int
+    dist: int
+    prior: np.ndarray | None = None
+
+
+@dataclass
+class _Pair:
+    spec: PairSpec
+    coarse: CoarseAlignment | None = None
+    tiepoints: TiePoints | None = None
+    mapping: PolyMap | None = None
+    error: GeocoderError | None = None
+
+
+def _tile_grid(image, opts) -> TileGrid:
+    """The interest operator's tiles of one band (as :func:`~geocoder.pipeline.detect.interest_points`)."""
+    h, w = image.shape
+    halo = opts.halo
+    rows = TileGrid.regular(h, w, image.chunksize[0], min_last=halo + 1).rows
+    cols = TileGrid.regular(h, w, image.chunksize[1], min_last=halo + 1).cols
+    for size in (*rows[:-1], *cols[:-1]):
+        if size % opts.cell:
+            raise ValueError(f"tile size {size} is not a multiple of the interest cell {opts.cell}")
+    return TileGrid(h, w, rows, cols)
+
+
+def scene_points(job: Job, names: list[str], images: list[xr.DataArray], readers: list[WindowReader],
+                 opts: RegisterOptions) -> list[InterestPoints]:
+    """Interest points of every image, all tiles of all images in one tile-parallel stage.
+
+    Parameters
+    ----------
+    job : Job
+        Keeps every tile's candidates (a rerun skips them).
+    names : list of str
+        A name per image, unique (the tasks' keys).
+    images : list of xarray.DataArray
+        Ingested scenes ``(band, y, x)``; their chunks are the tiles.
+    readers : list of WindowReader
+        The same images in their Zarr stores: every task reads its tile and halo itself.
+    opts : RegisterOptions
+        ``band`` and ``interest`` are used.
+
+    Returns
+    -------
+    list of InterestPoints
+        Per image, the points :func:`~geocoder.pipeline.detect.interest_points` finds
+        (the threshold ``f * mean(w)`` over the image's own tiles).
+    """
+    band = opts.band - 1
+    io = opts.interest
+    tasks, owner = {}, {}
+    for n, (name, image, reader) in enumerate(zip(names, images, readers)):
+        grid = _tile_grid(image.data[band], io)
+        for tile in grid:
+            window, core = _clipped(grid, tile.iy, tile.ix, io.halo)
+            key = f"{name}-{tile.key}"
+            tasks[key] = dask.delayed(_window_candidates, pure=True)(reader, band, window, core, grid.width, io)
+            owner[key] = n
+    parts = job.run_tiles("interest-candidates", tasks, phase="interest points (all scenes)")
+    total, count = np.zeros(len(images)), np.zeros(len(images), dtype=np.int64)
+    for key, (t, c, _) in parts.items():
+        total[owner[key]] += t
+        count[owner[key]] += c
+    out = []
+    for n in range(len(images)):
+        mine = [p[2] for key, p in parts.items() if owner[key] == n]
+        if count[n] == 0:
+            out.append(InterestPoints.concatenate([]))
+            continue
+        w_min = io.f * total[n] / count[n]
+        out.append(InterestPoints.concatenate([_above(p, w_min) for p in mine]))
+    return out
+
+
+def _coarse_task(spec: PairSpec, images: list[xr.DataArray], band: int, dist_band: int, use_georeference: bool,
+                 overviews: dict, max_size: int = 512):
+    """The coarse alignment of one pair as a delayed task (:func:`~geocoder.pipeline.coarse.submit_coarse_alignment`'s graph).
+
+    ``overviews`` holds the overview arrays by ``(image, band, factor)``: pairs that share an
+    image at the same level share one overview in the graph (the reference's: computed once).
+    """
+    base, dist = images[spec.base], images[spec.dist]
+    largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
+    factor = max(1, math.ceil(largest / max_size))
+    prior = spec.prior
+    if prior is None and use_georeference:
+        prior = georeference_prior(base, dist)
+    parts = []
+    for n, b in ((spec.base, band), (spec.dist, dist_band)):
+        if (n, b, factor) not in overviews:
+            overviews[n, b, factor] = overview(images[n].isel(band=b), factor).data
+        parts.append(overviews[n, b, factor])
+    return dask.delayed(_align, pure=True)(*parts, factor, prior)
+
+
+def _subset(points: InterestPoints, mask: np.ndarray) -> InterestPoints:
+    return InterestPoints(points.x[mask], points.y[mask], points.w[mask], points.q[mask])
+
+
+def _correspond_tile(tile, base_reader, dist_reader, band, dist_band, bpts, dpts, predict, dwin, copts, guided):
+    """One base tile of one pair: read both windows, match (point pairs, or guided from ``predict``)."""
+    r0, r1, c0, c1 = tile.window(copts.margin)
+    base = base_reader.read(r0, r1, c0, c1)[band]
+    dr0, dr1, dc0, dc1 = dwin
+    dist = dist_reader.read(dr0, dr1, dc0, dc1)[dist_band]
+    if guided:
+        return correspond_guided(base, (r0, c0), bpts, dist, (dr0, dc0), predict, copts)
+    return correspond(base, (r0, c0), bpts, dist, (dr0, dc0), dpts, predict, copts)
+
+
+def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_reader: WindowReader,
+                bpts: InterestPoints, dpts: InterestPoints, predict: PolyMap, opts: RegisterOptions,
+                guided: bool) -> dict:
+    """One task per base tile of the pair that has points and maps into the distorted scene
+    (the tasks of :func:`~geocoder.pipeline.correspond.match_tiles`), keyed ``<pair>.<tile>-<token>``."""
+    copts = opts.correspondence
+    band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
+    dshape = dist_reader.shape[1:]
+    token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dband, predict.coef, copts, guided)
+    margin = copts.d_max + copts.margin * 2 + 2
+    tasks = {}
+    for tile in grid:
+        inside = tile.contains(bpts.x, bpts.y)
+        if not inside.any():
+            continue
+        dwin = distorted_window(tile, predict, margin)
+        dwin = (max(dwin[0], 0), min(dwin[1], dshape[0]), max(dwin[2], 0), min(dwin[3], dshape[1]))
+        if dwin[0] >= dwin[1] or dwin[2] >= dwin[3]:
+            continue
+        dsel = (dpts.y >= dwin[0]) & (dpts.y < dwin[1]) & (dpts.x >= dwin[2]) & (dpts.x < dwin[3])
+        tasks[f"{pair.spec.name}.{tile.key}-{token[:12]}"] = dask.delayed(_correspond_tile, pure=True)(
+            tile, base_reader, dist_reader, band, dband, _subset(bpts, inside), _subset(dpts, dsel), predict, dwin,
+            copts, guided, dask_key_name=f"correspond-{pair.spec.name}-{tile.key}-{token}")
+    return tasks
+
+
+def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.DataArray], readers: list[WindowReader],
+                points: list[InterestPoints], opts: RegisterOptions) -> list:
+    """Tie points of many pairs, each round of the registration's matching run once for all pairs.
+
+    Parameters
+    ----------
+    job : Job
+        Keeps every task's result (a rerun resumes).
+    stage : str
+        Name of this batch in the job's stages and the progress (e.g. ``"control"``).
+    specs : list of PairSpec
+        The pairs (names unique within the batch).
+    images, readers : list
+        Ingested scenes and their Zarr readers, indexed by ``PairSpec.base`` and ``dist``.
+    points : list of InterestPoints
+        Every image's interest points (:func:`scene_points`).
+    opts : RegisterOptions
+        Band, order, passes, fewest tie points and the correspondence options.
+
+    Returns
+    -------
+    list
+        Per pair, ``(tie points, mapping, coarse alignment)`` as
+        :func:`~geocoder.pipeline.register.find_tiepoints` returns them, or the
+        :class:`~geocoder.errors.GeocoderError` saying why the pair could not be matched.
+    """
+    band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
+    pairs = [_Pair(s) for s in specs]
+    if not pairs:
+        return []
+    overviews: dict = {}
+    coarse = job.run_tiles(f"{stage}-coarse", {
+        p.spec.name: _coarse_task(p.spec, images, band, dband, opts.use_georeference, overviews) for p in pairs},
+        phase=f"coarse alignment ({stage})")
+    grids = {}
+    for p in pairs:
+        base, dist = images[p.spec.base], images[p.spec.dist]
+        try:
+            value = coarse[p.spec.name]
+            if isinstance(value, GeocoderError):
+                raise value
+            _check_overlap(value.mapping, (base.sizes["y"], base.sizes["x"]), (dist.sizes["y"], dist.sizes["x"]),
+                           base.attrs["source"], dist.attrs["source"])
+            for pts, scene in ((points[p.spec.base], base), (points[p.spec.dist], dist)):
+                if len(pts) < opts.min_tiepoints:
+                    raise InputError(scene.attrs["source"], f"has too little texture: {len(pts)} interest points found")
+        except GeocoderError as exc:
+            p.error = exc
+            continue
+        p.coarse = value
+        grids[p.spec.base] = TileGrid.from_chunks(base.data.chunks[1:])
+
+    def round_(label: str, todo: list[_Pair], predicts: list[PolyMap], guided: bool) -> list[TiePoints]:
+        """One correspondence pass of ``todo`` as one stage; the tie points gathered per pair."""
+        tasks, mine = {}, []
+        for p, predict in zip(todo, predicts):
+            t = _pair_tasks(p, grids[p.spec.base], readers[p.spec.base], readers[p.spec.dist],
+                            points[p.spec.base], points[p.spec.dist], predict, opts, guided)
+            mine.append(list(t))
+            tasks.update(t)
+        done = job.run_tiles(f"{stage}-{label}", tasks, phase=f"correspondence {label} ({stage}, {len(todo)} pairs)")
+        return [TiePoints.concatenate([done[k][0] for k in keys]) for keys in mine]
+
+    def fail(p: _Pair, n: int) -> None:
+        base, dist = images[p.spec.base], images[p.spec.dist]
+        p.error = MatchingError(f"only {n} tie points found between {base.attrs['source']} and {dist.attrs['source']}")
+
+    live = [p for p in pairs if p.error is None]
+    # pass 1: pairs of interest points (seed 000 sec. 4.4) from the coarse prediction; where
+    # that finds too few but the coarse alignment is a full affine, guided from it instead
+    found = dict(zip(map(id, live), round_("pass-1", live, [p.coarse.mapping for p in live], False)))
+    retry = [p for p in live if len(found[id(p)]) < opts.min_tiepoints and p.coarse.affine]
+    if retry:
+        found.update(zip(map(id, retry), round_("pass-1-guided", retry, [p.coarse.mapping for p in retry], True)))
+    for p in live:
+        if len(found[id(p)]) < opts.min_tiepoints:
+            fail(p, len(found[id(p)]))
+        else:
+            p.tiepoints, p.mapping = fit_global(found[id(p)], order=opts.order)
+    # later passes: every base point of every pair matched from its fitted polynomial; a pair
+    # that finds too few keeps the previous pass's points (and drops out of the later passes)
+    live = [p for p in live if p.error is None]
+    for i in range(1, opts.passes):
+        if not live:
+            break
+        again = round_(f"pass-{i + 1}", live, [p.mapping for p in live], True)
+        kept = []
+        for p, tp in zip(live, again):
+            if len(tp) >= opts.min_tiepoints:
+                p.tiepoints, p.mapping = fit_global(tp, order=opts.order)
+                kept.append(p)
+        live = kept
+    return [p.error if p.error is not None else (p.tiepoints, p.mapping, p.coarse) for p in pairs]
+
+
+__all__ = ["PairSpec", "match_pairs", "scene_points"]
