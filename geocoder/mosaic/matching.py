@@ -31,10 +31,9 @@ from ..errors import GeocoderError, InputError, MatchingError
 from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap
 from ..match.coarse import CoarseAlignment
-from ..match.correspondence import correspond, correspond_guided
 from ..match.tiepoints import TiePoints
 from ..pipeline.coarse import _align, georeference_prior, overview
-from ..pipeline.correspond import distorted_window, fit_global
+from ..pipeline.correspond import _tile_task, distorted_window, fit_global
 from ..pipeline.detect import _above, _clipped, _window_candidates
 from ..pipeline.job import Job
 from ..pipeline.register import RegisterOptions, _check_overlap
@@ -151,17 +150,6 @@ def _subset(points: InterestPoints, mask: np.ndarray) -> InterestPoints:
     return InterestPoints(points.x[mask], points.y[mask], points.w[mask], points.q[mask])
 
 
-def _correspond_tile(tile, base_reader, dist_reader, band, dist_band, bpts, dpts, predict, dwin, copts, guided):
-    """One base tile of one pair: read both windows, match (point pairs, or guided from ``predict``)."""
-    r0, r1, c0, c1 = tile.window(copts.margin)
-    base = base_reader.read(r0, r1, c0, c1)[band]
-    dr0, dr1, dc0, dc1 = dwin
-    dist = dist_reader.read(dr0, dr1, dc0, dc1)[dist_band]
-    if guided:
-        return correspond_guided(base, (r0, c0), bpts, dist, (dr0, dc0), predict, copts)
-    return correspond(base, (r0, c0), bpts, dist, (dr0, dc0), dpts, predict, copts)
-
-
 def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_reader: WindowReader,
                 bpts: InterestPoints, dpts: InterestPoints, predict: PolyMap, opts: RegisterOptions,
                 guided: bool) -> dict:
@@ -182,7 +170,7 @@ def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_rea
         if dwin[0] >= dwin[1] or dwin[2] >= dwin[3]:
             continue
         dsel = (dpts.y >= dwin[0]) & (dpts.y < dwin[1]) & (dpts.x >= dwin[2]) & (dpts.x < dwin[3])
-        tasks[f"{pair.spec.name}.{tile.key}-{token[:12]}"] = dask.delayed(_correspond_tile, pure=True)(
+        tasks[f"{pair.spec.name}.{tile.key}-{token[:12]}"] = dask.delayed(_tile_task, pure=True)(
             tile, base_reader, dist_reader, band, dband, _subset(bpts, inside), _subset(dpts, dsel), predict, dwin,
             copts, guided, dask_key_name=f"correspond-{pair.spec.name}-{tile.key}-{token}")
     return tasks
