@@ -19,6 +19,7 @@ from affine import Affine
 from rasterio.errors import NotGeoreferencedWarning
 
 from . import storage
+from .chunkcache import array_identity, read_chunked
 from .conventions import georeference, pixel_grid
 from .errors import InputError, as_environment_failure
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
@@ -270,24 +271,28 @@ def ingest(
 class WindowReader:
     """Pickleable, lazy reader of windows of a scene's Zarr ``image`` array.
 
-    Tasks on workers call :meth:`read` to fetch exactly the window they need.
+    Tasks on workers call :meth:`read` to fetch exactly the window they need. The store
+    must not change while it is read: windows of a local store come through the worker's
+    cache of decoded chunks (:mod:`geocoder.chunkcache`), which the job's tiles share.
     """
 
     def __init__(self, store: str, variable: str = IMAGE_VAR) -> None:
         self.store = os.fspath(store)
         self.variable = variable
         self._array = None
+        self._identity = None
 
     def __getstate__(self):
         return {"store": self.store, "variable": self.variable}
 
     def __setstate__(self, state):
-        self.store, self.variable, self._array = state["store"], state["variable"], None
+        self.store, self.variable, self._array, self._identity = state["store"], state["variable"], None, None
 
     @property
     def array(self) -> zarr.Array:
         if self._array is None:
             self._array = zarr.open_group(self.store, mode="r")[self.variable]
+            self._identity = array_identity(self.store, self.variable)
         return self._array
 
     @property
@@ -313,7 +318,12 @@ class WindowReader:
         out = np.full((self.shape[0], row1 - row0, col1 - col0), np.nan, dtype=np.float32)
         r0, r1, c0, c1 = max(row0, 0), min(row1, h), max(col0, 0), min(col1, w)
         if r1 > r0 and c1 > c0:
-            out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = self.array[:, r0:r1, c0:c1]
+            part = out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0]
+            array = self.array
+            if self._identity is None:
+                part[:] = array[:, r0:r1, c0:c1]
+            else:
+                read_chunked(self._identity, array.shape, array.chunks, array.__getitem__, (r0, r1, c0, c1), part)
         return out
 
 

@@ -129,7 +129,9 @@ def submit_coarse_alignment(
     task = dask.delayed(_align, pure=True)(ob, od, factor, prior)
     client = current_client()
     if client is not None:
-        return PendingAlignment(client.compute(task))
+        # ahead of the interest points submitted after it: its overviews are small, and the
+        # alignment (one task) then runs on one worker while the others find the points
+        return PendingAlignment(client.compute(task, priority=1))
     done = Future()
     done.set_result(task.compute())
     return PendingAlignment(done)

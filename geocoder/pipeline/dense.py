@@ -164,15 +164,18 @@ def create_state(path: str, shape: tuple[int, int], tile: int, lattice: int = 1)
     (``tile`` a multiple of k), so its rounds read and write a k-th of the full fields.
     """
     g = zarr.open_group(path, mode="w", zarr_format=3)
+    # uncompressed: a working store written and read in every round, on the job's own disk
+    # (zstd cost ~2 ms of decode or encode per chunk read or written, handed to zarr's thread pool)
+    create = partial(g.create_array, compressors=None)
     # one chunk per field and tile: a stage that needs a few fields decodes only those
-    g.create_array("fields", shape=(2, NFIELDS, *shape), chunks=(1, 1, tile, tile), dtype="float32", fill_value=np.nan)
-    g.create_array("code", shape=(2, *shape), chunks=(1, tile, tile), dtype="int8", fill_value=UNVISITED)
+    create("fields", shape=(2, NFIELDS, *shape), chunks=(1, 1, tile, tile), dtype="float32", fill_value=np.nan)
+    create("code", shape=(2, *shape), chunks=(1, tile, tile), dtype="int8", fill_value=UNVISITED)
     if lattice > 1:
         lshape, lchunk = (shape[0], -(-shape[1] // lattice)), (tile, tile // lattice)
         # all fields of a tile in one chunk: the rounds always read and write them together
-        g.create_array("lattice", shape=(2, NFIELDS, *lshape), chunks=(1, NFIELDS, *lchunk), dtype="float32",
+        create("lattice", shape=(2, NFIELDS, *lshape), chunks=(1, NFIELDS, *lchunk), dtype="float32",
                        fill_value=np.nan)
-        g.create_array("lattice_code", shape=(2, *lshape), chunks=(1, *lchunk), dtype="int8", fill_value=UNVISITED)
+        create("lattice_code", shape=(2, *lshape), chunks=(1, *lchunk), dtype="int8", fill_value=UNVISITED)
 
 
 def lattice_step(grid: TileGrid, opts: DenseOptions) -> int:
@@ -619,7 +622,7 @@ def _stored(stack: da.Array, state: str, grid: TileGrid, job: Job | None) -> da.
     g = zarr.open_group(state, mode="r+")
     if "field" not in g:
         g.create_array("field", shape=stack.shape, chunks=(stack.shape[0], grid.rows[0], grid.cols[0]), dtype="float32",
-                       fill_value=np.nan)
+                       fill_value=np.nan, compressors=None)
     blocks = stack.to_delayed(optimize_graph=False)
     tasks = {t.key: dask.delayed(_store_block, pure=True)(state, (t.row0, t.row1, t.col0, t.col1), blocks[0, t.iy, t.ix],
                                                           dask_key_name=f"dense-field-store-{t.key}-{stack.name}")
