@@ -226,9 +226,47 @@ def ingest(
 
         tile = get_option("tile")
     scene = src if isinstance(src, xr.DataArray) else open_scene(src, chunks=tile, nodata=nodata, bands=bands, grid=True)
-    scene = scene.chunk(_chunks(tile))
     out = storage.normalize(out)
     tmp = storage.temporary_sibling(out) if atomic else out
+    try:
+        _write_stores([scene], [tmp], [out], tile=tile, client=client)
+    except BaseException:
+        if atomic:
+            storage.remove(tmp)
+        raise
+    if atomic:
+        commit_output(tmp, out, overwrite=overwrite)
+    return _reopen(scene, out, tile)
+
+
+def ingest_scenes(scenes: list[xr.DataArray], outs: list[str], *, tile: int, client=None) -> list[xr.DataArray]:
+    """Write several scenes to their Zarr stores in one graph (:func:`ingest`'s layout), in place.
+
+    For a job that records completion itself: the stores are written where they are named,
+    without :func:`ingest`'s temporary name and checks of ``out``. All chunks of all scenes
+    are one Dask computation, so the scenes are read and written in parallel.
+
+    Returns the scenes re-opened from their stores, chunked by ``tile``.
+
+    Raises
+    ------
+    InputError
+        If a scene cannot be read (named).
+    """
+    outs = [storage.normalize(o) for o in outs]
+    _write_stores(scenes, outs, outs, tile=tile, client=client)
+    return [_reopen(scene, out, tile) for scene, out in zip(scenes, outs)]
+
+
+def _reopen(scene: xr.DataArray, out: str, tile: int) -> xr.DataArray:
+    reopened = open_scene(out, chunks=tile)
+    reopened.attrs["source"] = scene.attrs.get("source", out)
+    return reopened
+
+
+def _scene_dataset(scene: xr.DataArray, tile: int) -> xr.Dataset:
+    """A scene as the dataset of an ingested store: ``image`` chunked by tile, its attributes, its grid."""
+    scene = scene.chunk(_chunks(tile))
     ds = scene.to_dataset(name=IMAGE_VAR)
     ds.attrs.update(product_attrs("scene"))
     ds[IMAGE_VAR].attrs = {k: v for k, v in scene.attrs.items() if k != "georeferenced"}
@@ -239,33 +277,35 @@ def ingest(
     ds[IMAGE_VAR].encoding = {}
     ds["band"].attrs["long_name"] = "band of the source (1-based)"
     if georeferenced:
-        ds = georeference(ds, scene.rio.crs, scene.rio.transform())
+        return georeference(ds, scene.rio.crs, scene.rio.transform())
+    return pixel_grid(ds)
+
+
+def _write_stores(scenes: list[xr.DataArray], paths: list[str], outs: list[str], *, tile: int, client=None) -> None:
+    """Write every scene to its path in one computation; errors name the scene (or ``outs``' store)."""
+    delayed = [_scene_dataset(scene, tile).to_zarr(path, mode="w", zarr_format=3, consolidated=False, compute=False)
+               for scene, path in zip(scenes, paths)]
+    if client is not None:
+        futures = client.compute(delayed)
+        results = [(f, None) for f in futures]
     else:
-        ds = pixel_grid(ds)
+        results = [(None, d) for d in delayed]
     try:
-        delayed = ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False)
-        try:
-            if client is not None:
-                client.compute(delayed).result()
-            else:
-                delayed.compute()
-        except Exception as exc:
-            failure = as_environment_failure(exc, out)
-            if failure is not None:
-                raise failure from exc
-            if is_read_error(exc):
-                raise InputError(scene.attrs.get("source", "input"),
-                                 f"cannot be read, the file is truncated or damaged ({_first_line(exc)})") from exc
-            raise
-    except BaseException:
-        if atomic:
-            storage.remove(tmp)
-        raise
-    if atomic:
-        commit_output(tmp, out, overwrite=overwrite)
-    reopened = open_scene(out, chunks=tile)
-    reopened.attrs["source"] = scene.attrs.get("source", out)
-    return reopened
+        for (future, task), scene, out in zip(results, scenes, outs):
+            try:
+                future.result() if future is not None else task.compute()
+            except Exception as exc:
+                failure = as_environment_failure(exc, out)
+                if failure is not None:
+                    raise failure from exc
+                if is_read_error(exc):
+                    raise InputError(scene.attrs.get("source", "input"),
+                                     f"cannot be read, the file is truncated or damaged ({_first_line(exc)})") from exc
+                raise
+    finally:
+        for future, _ in results:
+            if future is not None:
+                future.cancel()
 
 
 class WindowReader:

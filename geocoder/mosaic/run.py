@@ -50,7 +50,7 @@ from ..multiscales import write_overviews
 from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..pipeline.job import Job, JobRun, fingerprint
-from ..pipeline.register import RegisterOptions, _ingest, _Timer, job_directory
+from ..pipeline.register import RegisterOptions, _Timer, ingest_all, job_directory
 from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
 from ..status import Status
@@ -512,11 +512,14 @@ def mosaic(
         run.connected = c.scheduler.address
         progress.current().message(f"Dask dashboard: {c.dashboard_link}")
         with timer("ingest"):
-            ref = _ingest(job, "reference", ref, tile, c)
-            opened = [_ingest(job, f"scene-{k}", s, tile, c) for k, s in enumerate(opened)]
+            named = {"reference": ref, **{f"scene-{k}": s for k, s in enumerate(opened)},
+                     **({"dem": dem_scene} if dem_scene is not None else {})}
+            ingested = ingest_all(job, named, tile, c)
+            ref = ingested["reference"]
+            opened = [ingested[f"scene-{k}"] for k in range(len(opened))]
             heights = None
             if dem_scene is not None:
-                dem_scene = _ingest(job, "dem", dem_scene, tile, c)
+                dem_scene = ingested["dem"]
                 heights = MapDEM(job.file("dem.zarr"), scene_transform(dem_scene), tile)
         ref_reader = WindowReader(job.file("reference.zarr"))
         readers = [WindowReader(job.file(f"scene-{k}.zarr")) for k in range(len(opened))]

@@ -36,7 +36,7 @@ from ..progress import Progress
 from ..quality.lines import LineOptions
 from ..quality.postfilter import PostFilterOptions
 from ..runtime import dask_client
-from ..scene import WindowReader, ingest, open_scene
+from ..scene import WindowReader, ingest_scenes, open_scene
 from ..status import Status
 from ..tiles import TileGrid
 from .coarse import submit_coarse_alignment
@@ -409,8 +409,8 @@ def register(
 def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSummary, timer, c, *, in_memory: bool):
     """The stages of :func:`register` inside a job; the dataset, its status counts and the tie points."""
     with timer("ingest"):
-        bscene = _ingest(job, "base", bscene, opts.tile, c)
-        dscene = _ingest(job, "distorted", dscene, opts.tile, c)
+        ingested = ingest_all(job, {"base": bscene, "distorted": dscene}, opts.tile, c)
+        bscene, dscene = ingested["base"], ingested["distorted"]
     if not job.done("content"):
         _check_content([(bscene, opts.band), (dscene, opts.dist_band or opts.band)])
         job.save("content")
@@ -529,25 +529,37 @@ def _job_key(base, distorted, bscene, dscene, opts: RegisterOptions, nodata, dis
     )
 
 
-def _ingest(job: Job, name: str, scene: xr.DataArray, tile: int, client) -> xr.DataArray:
-    path = job.file(f"{name}.zarr")
-    stage = f"ingest-{name}"
-    ntiles = len(TileGrid.regular(scene.sizes["y"], scene.sizes["x"], tile))
-    source = scene.attrs.get("source", name)
-    if job.done(stage) and storage.is_store(path):
-        job.count(stage, run=0, skipped=ntiles)
-        reopened = open_scene(path, chunks=tile)
-    else:
-        job.note_unfinished(ntiles)
+def ingest_all(job: Job, scenes: dict[str, xr.DataArray], tile: int, client) -> dict[str, xr.DataArray]:
+    """Ingest the job's scenes (name -> scene) to ``NAME.zarr`` in its directory, all in one graph.
+
+    A scene whose stage finished in an earlier run is re-opened, not written again.
+    Returns the scenes re-opened from their stores, by name.
+    """
+    out: dict[str, xr.DataArray] = {}
+    todo = []
+    for name, scene in scenes.items():
+        path = job.file(f"{name}.zarr")
+        ntiles = len(TileGrid.regular(scene.sizes["y"], scene.sizes["x"], tile))
+        if job.done(f"ingest-{name}") and storage.is_store(path):
+            job.count(f"ingest-{name}", run=0, skipped=ntiles)
+            out[name] = open_scene(path, chunks=tile)
+            out[name].attrs["source"] = scene.attrs.get("source", name)
+        else:
+            job.note_unfinished(ntiles)
+            todo.append((name, scene, path, ntiles))
+    if todo:
         bar = progress.current()
-        bar.phase(f"ingest ({name})", 1)
-        reopened = ingest(scene, path, tile=tile, client=client, atomic=False)  # complete once the stage is saved
-        bar.advance()
+        bar.phase(f"ingest ({', '.join(name for name, *_ in todo)})", len(todo))
+        # complete once each stage is saved
+        written = ingest_scenes([scene for _, scene, *_ in todo], [path for *_, path, _ in todo], tile=tile, client=client)
+        bar.advance(len(todo))
         bar.close()
-        job.count(stage, run=ntiles, skipped=0)
-        job.save(stage)
-    reopened.attrs["source"] = source
-    return reopened
+        for (name, scene, _, ntiles), reopened in zip(todo, written):
+            job.count(f"ingest-{name}", run=ntiles, skipped=0)
+            job.save(f"ingest-{name}")
+            reopened.attrs["source"] = scene.attrs.get("source", name)
+            out[name] = reopened
+    return {name: out[name] for name in scenes}
 
 
 def _write_tile(store: str, window: tuple[int, int, int, int], names: tuple[str, ...], *blocks: np.ndarray) -> np.ndarray:
