@@ -3,7 +3,38 @@
 import numpy as np
 import pytest
 
-from geocoder.quality.lines import LineOptions, combine_sums, line_corrections, line_sums
+from geocoder.quality.lines import LineCorrection, LineOptions, combine_sums, line_corrections, line_sums
+
+
+def _line_field(tmp_path, dx, dy, status, sx, sy, chunk, options, *, rows=None, fits_from_rows=False, correlation=51):
+    """:func:`geocoder.pipeline.lines.line_field` on a field written as the dense stage stores it
+    (zero polynomial); ``rows`` None: no row corrections (NaN), else those of :func:`row_corrections`."""
+    import dask.array as da
+    import zarr
+
+    from geocoder.kernels.polynomial import PolyMap
+    from geocoder.pipeline.lines import line_field, row_corrections
+
+    h, w = dx.shape
+    store = str(tmp_path / f"state-{chunk}.zarr")
+    stack = np.stack([dx, dy, status, sx, sy, np.full((h, w), np.nan)]).astype(np.float32)
+    chunks = da.from_array(dx, chunks=chunk).chunks
+    zarr.open_group(store, mode="w", zarr_format=3).create_array(
+        "field", data=stack, chunks=(6, chunks[0][0], chunks[1][0]))
+    fits = None
+    if rows is None:
+        nan = np.full(h, np.nan)
+        rows = LineCorrection(nan, nan, nan, nan, np.zeros(h, bool), nan, nan)
+    else:
+        zero = np.zeros((h, w), np.float32)
+        field = {"dx": da.from_array(dx.astype(np.float32), chunks=chunk), "dy": da.from_array(dy.astype(np.float32), chunks=chunk),
+                 "status": da.from_array(status, chunks=chunk), "sigma_x": da.from_array(sx, chunks=chunk),
+                 "sigma_y": da.from_array(sy, chunks=chunk)}
+        rows, fits = row_corrections(field, (da.from_array(zero, chunks=chunk),) * 2, options, correlation=correlation)
+    out = line_field(store, chunks, PolyMap.from_affine([[1, 0, 0], [0, 1, 0]]), rows, fits if fits_from_rows else None,
+                     options, correlation=correlation)
+    assert out["dx"].chunks == chunks
+    return {k: v.compute() for k, v in out.items()}, fits
 
 
 def _rows(shifts, usable, noise=0.0, sigma=0.05, seed=0):
@@ -97,12 +128,9 @@ def test_holes_are_interpolated_between_their_ends_only():
     assert np.isnan(cx[1:]).all()
 
 
-def test_hole_estimates_do_not_depend_on_the_tiling(client):
-    """The lazy version reads max_hole + edge columns around each block: any chunking, one result."""
-    import dask.array as da
-
+def test_hole_estimates_do_not_depend_on_the_tiling(client, tmp_path):
+    """Each tile reads max_hole + edge columns around it: any chunking, one result."""
     from geocoder import Status
-    from geocoder.pipeline.lines import hole_estimates_lazy
     from geocoder.quality.lines import LineOptions, hole_estimates
 
     rng = np.random.default_rng(3)
@@ -114,19 +142,20 @@ def test_hole_estimates_do_not_depend_on_the_tiling(client):
         c = int(rng.integers(20, 500))
         status[r, c : c + int(rng.integers(5, 150))] = Status.NO_TEXTURE
     sig = np.full((h, w), 0.05, np.float32)
-    zero = np.zeros((h, w))
-    opts = LineOptions()
+    opts = LineOptions(fit_order=-1)
     want = hole_estimates(dx, dy, sig**2, sig**2, status == Status.MATCHED, status == Status.NO_TEXTURE,
                           max_hole=opts.max_hole, edge=opts.edge)
-    for chunk in (64, 128, 700):
-        field = {"dx": da.from_array(dx, chunks=chunk), "dy": da.from_array(dy, chunks=chunk),
-                 "status": da.from_array(status, chunks=chunk), "sigma_x": da.from_array(sig, chunks=chunk),
-                 "sigma_y": da.from_array(sig, chunks=chunk)}
-        lazy = hole_estimates_lazy(field, (da.from_array(zero, chunks=chunk),) * 2, opts)
-        assert lazy.chunks[1:] == field["dx"].chunks  # the last block (700 % 128 = 60 px) is narrower than the depth
-        got = lazy.compute()
-        assert (got[4] > 0).sum() == want[4].sum() > 0
-        np.testing.assert_allclose(got[0][want[4]], want[0][want[4]], rtol=1e-5, atol=1e-6)
+    for chunk in (64, 128, 700):  # the last block of 128 (700 % 128 = 60 px) is narrower than the reach
+        got, _ = _line_field(tmp_path, dx, dy, status, sig, sig, chunk, opts)
+        estimated = got["status"] == Status.ESTIMATED
+        assert estimated.sum() == want[4].sum() > 0 and (estimated == want[4]).all()
+        # no row correction: the hole's interpolation itself, its sigma that of the ends' noise
+        np.testing.assert_allclose(got["dx"][want[4]], want[0][want[4]], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(got["dy"][want[4]], want[1][want[4]], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(got["sigma_x"][want[4]], np.sqrt(want[2][want[4]]), rtol=1e-5)
+        matched = status == Status.MATCHED
+        np.testing.assert_array_equal(got["dx"][matched], dx.astype(np.float32)[matched])
+        assert (got["dx"][~matched & ~want[4]] == 0).all()  # the rest keeps the (zero) polynomial
 
 
 def test_smoothing_takes_the_noise_off_a_shift_and_keeps_a_change_along_the_line():
@@ -156,11 +185,8 @@ def test_smoothing_takes_the_noise_off_a_shift_and_keeps_a_change_along_the_line
     np.testing.assert_array_equal(rx[:, :10], r[:, :10])  # unmatched pixels unchanged
 
 
-def test_smoothing_does_not_depend_on_the_tiling(client):
-    import dask.array as da
-
+def test_smoothing_does_not_depend_on_the_tiling(client, tmp_path):
     from geocoder import Status
-    from geocoder.pipeline.lines import smooth_field
     from geocoder.quality.lines import LineOptions, smooth_matches
 
     rng = np.random.default_rng(4)
@@ -169,16 +195,13 @@ def test_smoothing_does_not_depend_on_the_tiling(client):
     dy = rng.normal(0, 0.1, (h, w))
     status = np.where(rng.random((h, w)) < 0.8, Status.MATCHED, Status.NO_TEXTURE).astype(np.uint8)
     sig = np.full((h, w), 0.1, np.float32)
-    zero = np.zeros((h, w))
     want = smooth_matches(dx, dy, sig, sig, status == Status.MATCHED, window=129, correlation=51)
     for chunk in (64, 128, 700):
-        field = {"dx": da.from_array(dx, chunks=chunk), "dy": da.from_array(dy, chunks=chunk),
-                 "status": da.from_array(status, chunks=chunk), "sigma_x": da.from_array(sig, chunks=chunk),
-                 "sigma_y": da.from_array(sig, chunks=chunk)}
-        got = smooth_field(field, (da.from_array(zero, chunks=chunk),) * 2, LineOptions(smooth=129), correlation=51)
-        assert got["dx"].chunks == field["dx"].chunks
-        np.testing.assert_allclose(got["dx"].compute(), want[0], rtol=1e-5, atol=1e-5)
-        np.testing.assert_allclose(got["sigma_y"].compute(), want[3], rtol=1e-5, atol=1e-6)
+        got, _ = _line_field(tmp_path, dx, dy, status, sig, sig, chunk, LineOptions(smooth=129, max_hole=0, fit_order=-1))
+        m = status == Status.MATCHED  # the others keep the (zero) polynomial
+        np.testing.assert_allclose(got["dx"][m], want[0][m], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(got["sigma_y"][m], want[3][m], rtol=1e-5, atol=1e-6)
+        assert (got["dx"][~m] == 0).all()
 
 
 def _fit_field(h: int, w: int, along, sigma: float, seed: int = 0):
@@ -192,23 +215,15 @@ def _fit_field(h: int, w: int, along, sigma: float, seed: int = 0):
     return truth, noisy
 
 
-def _shrunk(noisy, sigma, order, chunk, client):
-    import dask.array as da
-
-    from geocoder.pipeline.lines import row_corrections, shrink_to_lines
+def _shrunk(noisy, sigma, order, chunk, client, tmp_path):
     from geocoder.status import Status
 
     h, w = noisy.shape
-    zero = np.zeros((h, w), np.float32)
-    field = {"dx": da.from_array(noisy.astype(np.float32), chunks=chunk),
-             "dy": da.from_array(-noisy.astype(np.float32), chunks=chunk),
-             "status": da.from_array(np.full((h, w), Status.MATCHED, np.uint8), chunks=chunk),
-             "sigma_x": da.from_array(np.full((h, w), sigma, np.float32), chunks=chunk),
-             "sigma_y": da.from_array(np.full((h, w), sigma, np.float32), chunks=chunk)}
-    poly = (da.from_array(zero, chunks=chunk),) * 2
-    _, fits = row_corrections(field, poly, LineOptions(fit_order=order), correlation=1)
-    out = shrink_to_lines(field, poly, fits)
-    return (out["dx"].compute(), out["sigma_x"].compute(), out["dy"].compute()), fits
+    sig = np.full((h, w), sigma, np.float32)
+    matched = np.full((h, w), Status.MATCHED, np.uint8)
+    out, fits = _line_field(tmp_path, noisy, -noisy, matched, sig, sig, chunk, LineOptions(fit_order=order), rows=True,
+                            fits_from_rows=True, correlation=1)
+    return (out["dx"], out["sigma_x"], out["dy"]), fits
 
 
 def test_fit_sums_of_blocks_add_up_to_the_whole_row():
@@ -225,13 +240,13 @@ def test_fit_sums_of_blocks_add_up_to_the_whole_row():
     np.testing.assert_allclose(parts, whole)
 
 
-def test_matches_on_a_line_that_follows_its_fit_take_the_fit_with_an_honest_sigma(client):
+def test_matches_on_a_line_that_follows_its_fit_take_the_fit_with_an_honest_sigma(client, tmp_path):
     # turbulence (a shift per line) plus what the polynomial missed (a quadratic along the
     # line), matched with 0.08 px of independent noise: the fit over 600 matches of a line
     # knows the line to ~0.08 / sqrt(600 / 3) px
     sigma = 0.08
     truth, noisy = _fit_field(40, 600, lambda u, r: np.sin(r / 3.0) + 0.3 * u - 0.2 * u * u, sigma)
-    (dx, sx, dy), fits = _shrunk(noisy, sigma, 2, (16, 200), client)
+    (dx, sx, dy), fits = _shrunk(noisy, sigma, 2, (16, 200), client, tmp_path)
     err = dx - truth
     rmse = np.sqrt(np.mean(err**2))
     assert rmse < 0.2 * sigma
@@ -243,21 +258,21 @@ def test_matches_on_a_line_that_follows_its_fit_take_the_fit_with_an_honest_sigm
     np.testing.assert_allclose(-dy, dx, atol=1e-5)  # y handled like x
 
 
-def test_matches_on_a_line_that_departs_from_its_fit_stand(client):
+def test_matches_on_a_line_that_departs_from_its_fit_stand(client, tmp_path):
     # relief along the line: 0.5 px waves of 40 px, far beyond the matches' noise, which no
     # quadratic follows: the matches keep (nearly) all of their own value and sigma
     sigma = 0.05
     truth, noisy = _fit_field(20, 600, lambda u, r: 0.5 * np.sin(u * 600 / 40.0 * np.pi) + 0.1 * r, sigma)
-    (dx, sx, _), _ = _shrunk(noisy, sigma, 2, (20, 300), client)
+    (dx, sx, _), _ = _shrunk(noisy, sigma, 2, (20, 300), client, tmp_path)
     assert np.max(np.abs(dx - noisy)) < 0.05 * 0.5  # k = tau^2 / (tau^2 + sigma^2) ~ 0.98
     assert np.sqrt(np.mean((dx - truth) ** 2)) <= 1.02 * sigma
     np.testing.assert_allclose(sx, sigma, rtol=0.02)
 
 
-def test_line_fits_do_not_depend_on_the_tiling(client):
+def test_line_fits_do_not_depend_on_the_tiling(client, tmp_path):
     sigma = 0.08
     _, noisy = _fit_field(32, 300, lambda u, r: 0.1 * r + 0.2 * u, sigma, seed=3)
-    a, _ = _shrunk(noisy, sigma, 2, (32, 300), client)
-    b, _ = _shrunk(noisy, sigma, 2, (8, 64), client)
+    a, _ = _shrunk(noisy, sigma, 2, (32, 300), client, tmp_path)
+    b, _ = _shrunk(noisy, sigma, 2, (8, 64), client, tmp_path)
     for x, y in zip(a, b):
         np.testing.assert_allclose(x, y, atol=1e-5)

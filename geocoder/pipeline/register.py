@@ -44,7 +44,7 @@ from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points
 from .job import Job, JobRun, fingerprint
-from .lines import apply_corrections, row_corrections, shrink_to_lines, smooth_field
+from .lines import line_field, row_corrections
 from .resample import model_status, polynomial_displacement, resample
 
 log = logging.getLogger("geocoder")
@@ -435,9 +435,7 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
             with timer("line estimates"):
                 correlation = 2 * opts.matching.alsc.radius + 1
                 rows, fits = row_corrections(field_, (dx, dy), opts.lines, correlation=correlation)
-                field_ = apply_corrections(field_, (dx, dy), rows, opts.lines)
-                field_ = shrink_to_lines(field_, (dx, dy), fits)
-                field_ = smooth_field(field_, (dx, dy), opts.lines, correlation=correlation)
+                field_ = line_field(result.store, chunks, mapping, rows, fits, opts.lines, correlation=correlation)
         dx, dy = field_["dx"], field_["dy"]
         extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
     registered = resample(dreader, dx, dy, method=opts.resampling)
