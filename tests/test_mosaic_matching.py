@@ -22,7 +22,7 @@ from geocoder.mosaic.matching import PairSpec, match_pairs, scene_points
 from geocoder.mosaic.run import _affine_between
 from geocoder.pipeline.detect import interest_points
 from geocoder.pipeline.job import Job
-from geocoder.pipeline.register import RegisterOptions, RegisterSummary, _ingest, _Timer, find_tiepoints
+from geocoder.pipeline.register import RegisterOptions, RegisterSummary, _Timer, find_tiepoints, ingest_all
 from geocoder.scene import WindowReader, open_scene, write_geotiff
 from geocoder.simulate.block import BlockScene, render
 from geocoder.simulate.texture import synthetic_ortho
@@ -42,7 +42,7 @@ SCENES = [
 def _opened(job: Job, client, paths: list) -> tuple[list, list]:
     """Every image ingested into the job (the mosaic's first stage) and its window reader."""
     names = ["reference", *(f"scene-{k}" for k in range(len(paths) - 1))]
-    images = [_ingest(job, n, open_scene(p, chunks=TILE), TILE, client) for n, p in zip(names, paths)]
+    images = list(ingest_all(job, {n: open_scene(p, chunks=TILE) for n, p in zip(names, paths)}, TILE, client).values())
     return images, [WindowReader(job.file(f"{n}.zarr")) for n in names]
 
 
