@@ -70,7 +70,7 @@ MULTISCALES_CONVENTION = {
     "description": "Multiscale layout of zarr datasets",
 }
 
-#: Scratch group of the valid-pixel counts while the levels are written (removed afterwards).
+#: Scratch group where earlier versions kept the valid-pixel counts between levels (removed if found).
 COUNTS_GROUP = "_overview_counts"
 
 #: Encoding kept from the root's variables (chunks are the root's, cut to the level's shape; no shards:
@@ -224,19 +224,28 @@ class _Levels:
             self._opened[key] = xr.open_zarr(self.store, group=group, consolidated=False, chunks={"y": 2 * cy, "x": 2 * cx})
         return self._opened[key][name]
 
-    def dataset(self, k: int) -> tuple[xr.Dataset, xr.Dataset]:
-        """Level ``k`` from level ``k - 1`` (as stored), and the valid-pixel counts of its averages."""
-        source = None if k == 1 else str(k - 1)
+    def dataset(self, k: int, below: dict[str, xr.DataArray] | None = None,
+                below_counts: dict[str, da.Array] | None = None) -> tuple[xr.Dataset, dict[str, da.Array]]:
+        """Level ``k`` (lazy) from level ``k - 1``, and the valid-pixel counts of its averages.
+
+        ``below`` and ``below_counts`` are level ``k - 1`` as this method returned it; None for
+        ``k = 1`` (the root, as stored).
+        """
         count_dtype = np.min_scalar_type(4**k)
         variables, counts = {}, {}
         for name in self.names:
-            below = self._open(source, name)
+            if below is None:
+                values, n = self._open(None, name), None
+            else:  # the level below, its chunks merged 2 x 2: one task per output chunk
+                cy, cx = self.chunks[name][-2:]
+                values = below[name].chunk({"y": 2 * cy, "x": 2 * cx})
+                n = below_counts.get(name)
+                n = None if n is None else n.rechunk(values.data.chunks)
             if self.methods[name] == "average":
-                n = None if k == 1 else self._open(f"{COUNTS_GROUP}/{k - 1}", name).data
-                data, counts[name] = _mean_level(below.data, n, below.dtype, count_dtype)
+                data, counts[name] = _mean_level(values.data, n, values.dtype, count_dtype)
                 cell = "y: x: mean"
             else:
-                data = _nearest_level(below.data)
+                data = _nearest_level(values.data)
                 cell = "y: x: point"
             attrs = {a: v for a, v in self.root[name].attrs.items() if a != "_CRS"}
             attrs["cell_methods"] = f"{attrs['cell_methods']} {cell}" if attrs.get("cell_methods") else cell
@@ -252,10 +261,7 @@ class _Levels:
             x, y = pixel_centres(transform, shape)
             level = level.assign_coords(x=("x", x, dict(self.root["x"].attrs) if "x" in self.root.coords else {}),
                                         y=("y", y, dict(self.root["y"].attrs) if "y" in self.root.coords else {}))
-        count_ds = xr.Dataset({n: xr.DataArray(c, dims=self.root[n].dims) for n, c in counts.items()})
-        for n, c in count_ds.data_vars.items():
-            c.encoding = {"chunks": tuple(min(a, b) for a, b in zip(self.chunks[n], c.shape))}
-        return level, count_ds
+        return level, counts
 
     def _coords(self, variables: dict[str, xr.DataArray]) -> dict:
         """The root's coordinates off the (y, x) grid that the level's variables use (``band``, ...)."""
@@ -358,18 +364,19 @@ def write_overviews(
     tiles = [-(-h // cy) * -(-w // cx) for h, w in shapes]  # the progress counts each level's output chunks
     bar = progress.current()
     bar.phase("overview levels", sum(tiles))
+    # every level in one graph, each from the one below as computed (the same values as stored:
+    # float32 means and their valid counts), so no level is read back and no count is stored
+    writes, below, below_counts = [], None, None
+    for k in range(1, len(shapes) + 1):
+        level, below_counts = levels.dataset(k, below, below_counts)
+        writes.append(level.to_zarr(store, group=str(k), mode="w", zarr_format=3, consolidated=False, compute=False))
+        below = level
     try:
-        for k in range(1, len(shapes) + 1):
-            level, counts = levels.dataset(k)
-            writes = [level.to_zarr(store, group=str(k), mode="w", zarr_format=3, consolidated=False, compute=False)]
-            if k < len(shapes) and counts.data_vars:  # the last level's counts are never read
-                writes.append(counts.to_zarr(store, group=f"{COUNTS_GROUP}/{k}", mode="w", zarr_format=3,
-                                             consolidated=False, compute=False))
-            dask.compute(*writes, **({"scheduler": client} if client is not None else {}))
-            bar.advance(tiles[k - 1])
+        dask.compute(*writes, **({"scheduler": client} if client is not None else {}))
+        bar.advance(sum(tiles))
     finally:
         bar.close()
-        storage.remove(storage.join(store, COUNTS_GROUP))
+        storage.remove(storage.join(store, COUNTS_GROUP))  # left by an earlier version
 
     group = zarr.open_group(store, mode="r+", zarr_format=3)
     attrs = group.attrs.asdict()

@@ -254,7 +254,7 @@ def test_one_task_per_output_chunk(store):
     """Each output chunk is computed from one input block of at most 2 x 2 stored chunks."""
     root = xr.open_zarr(store["path"], decode_coords="all", consolidated=False)
     levels = _Levels(str(store["path"]), ["height", "image", "status"], root)
-    level, counts = levels.dataset(1)  # from the root (the scratch counts of higher levels are gone)
+    level, counts = levels.dataset(1)  # from the root
     below = levels._open(None, "height").data
     assert max(below.chunks[-2]) == 2 * CHUNK and max(below.chunks[-1]) == 2 * CHUNK
     for name in ("height", "status"):
@@ -263,7 +263,12 @@ def test_one_task_per_output_chunk(store):
         assert max(out.chunks[-2]) == CHUNK and max(out.chunks[-1]) == CHUNK
         # a few tasks per chunk (read, reduce, select, cast), not one per pixel or per row
         assert len(dict(out.__dask_graph__())) <= 6 * out.npartitions
-    assert counts.height.dtype == np.uint8 and set(counts.data_vars) == {"height", "image"}  # averages only
+    assert counts["height"].dtype == np.uint8 and set(counts) == {"height", "image"}  # averages only
+    # level 2 from level 1 as computed: its input blocks are 2 x 2 of level 1's chunks
+    level2, _ = levels.dataset(2, level, counts)
+    for name in ("height", "status"):
+        assert level2[name].shape[-2:] == tuple((n + 1) // 2 for n in level[name].shape[-2:])
+        assert max(level2[name].data.chunks[-1]) == CHUNK
 
 
 def test_pixel_grid_store_and_rerun(truth, tmp_path, client):
