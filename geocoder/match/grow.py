@@ -110,7 +110,8 @@ def _quality(p):
 @numba.njit(nogil=True, cache=True)
 def grow(
     base, dist, grad_x, grad_y, seeds, params, code, tries, region, step, lattice_origin,
-    neighbours, max_tries, col_step, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma, min_det,
+    neighbours, max_tries, col_step, param_stride, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma,
+    min_det,
 ):
     """Grow matches from ``seeds`` inside ``region``; returns the number of new matches.
 
@@ -120,7 +121,10 @@ def grow(
     seeds : float64 (k, SEED_WIDTH)
         Rows of :data:`SEED_COLUMNS`: ``row, col`` (base window) then the start parameters
         (distorted window frame).
-    params, code, tries : window-sized state, updated in place.
+    params, code, tries : window-sized state, updated in place; ``params`` holds every
+        ``param_stride``-th column only, from ``lattice_origin[1] % param_stride`` (1: every column).
+        The columns of a lattice's matches are all there is to keep when ``param_stride`` is its
+        column spacing (a window of 12 float64 fields per pixel costs 16 times the memory and time).
     region : int64[4]
         ``row0, row1, col0, col1`` (half open, base window) where matches may be made.
     step : int
@@ -133,6 +137,7 @@ def grow(
         left to :func:`geocoder.match.fill.fill_lines`.
     """
     h, w = code.shape
+    p0 = lattice_origin[1] % param_stride
     cap = max(1024, seeds.shape[0] * 8)
     keys = np.empty(cap, np.float64)
     items = np.empty(cap, np.int64)
@@ -164,7 +169,7 @@ def grow(
         )
         code[r, c] = e
         if e == _ACCEPTED:
-            params[r, c, :] = out
+            params[r, (c - p0) // param_stride, :] = out
             new += 1
             keys, items, parents, size = _heap_push(keys, items, parents, size, _quality(out), r * w + c, -1)
     while size > 0:
@@ -176,7 +181,7 @@ def grow(
                 continue
             pr, pc = parent // w, parent % w
             du, dv = float(c - pc), float(r - pr)
-            p = params[pr, pc]
+            p = params[pr, (pc - p0) // param_stride]
             init[F_X] = p[F_X] + p[F_A11] * du + p[F_A12] * dv
             init[F_Y] = p[F_Y] + p[F_A21] * du + p[F_A22] * dv
             for j in range(F_A11, NPARAMS):
@@ -189,7 +194,7 @@ def grow(
             code[r, c] = e
             if e != _ACCEPTED:
                 continue
-            params[r, c, :] = out
+            params[r, (c - p0) // param_stride, :] = out
             new += 1
             key = _quality(out)
         # (r, c) is accepted: queue its unmatched neighbours with it as the parent
@@ -219,8 +224,14 @@ def grow_window(
     neighbours: int = 4,
     max_tries: int = 2,
     col_step: int = 1,
+    param_stride: int = 1,
 ) -> int:
-    """Python entry to :func:`grow` with options unpacked; returns the number of new matches."""
+    """Python entry to :func:`grow` with options unpacked; returns the number of new matches.
+
+    ``params`` holds every ``param_stride``-th column of the window (see :func:`grow`).
+    """
+    if param_stride > 1 and (step * col_step) % param_stride:
+        raise ValueError(f"param_stride {param_stride} must divide the lattice's column spacing {step * col_step}")
     tries = np.zeros(code.shape, np.uint8)
     offsets = _N4 if neighbours == 4 else _N8
     o = options
@@ -230,7 +241,7 @@ def grow_window(
             np.ascontiguousarray(grad[0], dtype=np.float32), np.ascontiguousarray(grad[1], dtype=np.float32),
             np.ascontiguousarray(seeds, dtype=np.float64), params, code, tries,
             np.asarray(region, dtype=np.int64), int(step), np.asarray(lattice_origin, dtype=np.int64),
-            offsets, int(max_tries), int(col_step), *o.kernel_args(),
+            offsets, int(max_tries), int(col_step), int(param_stride), *o.kernel_args(),
         )
     )
 

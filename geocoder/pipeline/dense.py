@@ -198,9 +198,10 @@ def _core_columns(tile: Tile, k: int) -> tuple[slice, slice]:
     return slice(tile.col0 // k, -(-tile.col1 // k)), slice(None, None, k)
 
 
-def _read_core(g, tile: Tile, slot: int, k: int, what: str) -> np.ndarray:
+def _read_core(g, tile: Tile, slot: int, k: int, what: str, *, compact: bool = False) -> np.ndarray:
     """``"code"`` (h, w) int8 or ``"fields"`` (12, h, w) float32 of a tile's core from slot ``slot``,
-    at full width (UNVISITED / NaN between the lattice columns of a compact state)."""
+    at full width (UNVISITED / NaN between the lattice columns of a compact state), or as
+    stored (``compact``: every ``k``-th column)."""
     stored, within = _core_columns(tile, k)
     rows = slice(tile.row0, tile.row1)
     shape = (tile.row1 - tile.row0, tile.col1 - tile.col0)
@@ -210,7 +211,7 @@ def _read_core(g, tile: Tile, slot: int, k: int, what: str) -> np.ndarray:
     else:
         part = g["fields" if k == 1 else "lattice"][slot, :, rows, stored]
         out = np.full((NFIELDS, *shape), np.nan, dtype=np.float32)
-    if k == 1:
+    if k == 1 or compact:
         return part
     out[..., within] = part
     return out
@@ -224,6 +225,13 @@ def _write_core(g, tile: Tile, slot: int, k: int, values: np.ndarray, code: np.n
     rows = slice(tile.row0, tile.row1)
     g["fields" if k == 1 else "lattice"][slot, slice(None) if fields is None else list(fields), rows, stored] = values
     g["code" if k == 1 else "lattice_code"][slot, rows, stored] = code
+
+
+def _param_window(shape: tuple[int, int], k: int, wc0: int) -> np.ndarray:
+    """NaN ALSC fields (h, w', 12) float64 of a window whose first column is the global ``wc0``:
+    every column (``k = 1``) or the global lattice columns (multiples of ``k``) only."""
+    h, w = shape
+    return np.full((h, -(-(w - (-wc0 % k)) // k), NFIELDS), np.nan)
 
 
 def seeds_from_tiepoints(tp: TiePoints, mapping: PolyMap) -> np.ndarray:
@@ -281,14 +289,16 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     dr0, dc0 = dwin[0], dwin[2]
     dist = dist_reader.read(*dwin)[dist_band]
     grad = gradients(dist)
-    # window state: the core's earlier matches, nothing in the halo
-    params = np.full((*base.shape, NFIELDS), np.nan)
+    # window state: the core's earlier matches, nothing in the halo; ``params`` holds the
+    # lattice's columns only when the state does (every k-th, from the core's first)
+    params, p0, (cr, cc) = _param_window(base.shape, k, wc0), -wc0 % k, (tile.row0 - wr0, tile.col0 - wc0)
     code = np.full(base.shape, UNVISITED, dtype=np.int8)
-    cr, cc = tile.row0 - wr0, tile.col0 - wc0
     csl = (slice(cr, cr + tile.row1 - tile.row0), slice(cc, cc + tile.col1 - tile.col0))
-    core = params[csl]  # a view: filled in place, no float64 copy of the tile's fields
-    core[:] = np.moveaxis(_read_core(g, tile, slot, k, "fields"), 0, -1)
-    xs = np.arange(tile.col0, tile.col1)[None, :] - dc0
+    stored = np.moveaxis(_read_core(g, tile, slot, k, "fields", compact=True), 0, -1)
+    pc0 = (cc - p0) // k
+    core = params[cr : cr + stored.shape[0], pc0 : pc0 + stored.shape[1]]  # a view: filled in place
+    core[:] = stored
+    xs = (tile.col0 + k * np.arange(stored.shape[1]))[None, :] - dc0
     ys = np.arange(tile.row0, tile.row1)[:, None] - dr0
     core[..., 0] += xs  # stored as displacement, used as distorted-window position
     core[..., 1] += ys
@@ -301,20 +311,19 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     region = (rr0 - wr0, rr1 - wr0, rc0 - wc0, rc1 - wc0)
     new = grow_window(base, dist, grad, local, params, code, region, options=opts.growth_alsc, step=opts.step,
                       lattice_origin=(-wr0 % opts.step, -wc0 % (opts.step * opts.col_step)), neighbours=opts.neighbours,
-                      max_tries=opts.max_tries, col_step=opts.col_step)
+                      max_tries=opts.max_tries, col_step=opts.col_step, param_stride=k)
     if new == 0:
         return 0, np.empty((0, SEED_WIDTH)), False
     _, within = _core_columns(tile, k)
-    stored = core[:, within]
-    out = np.moveaxis(stored, -1, 0).astype(np.float32)
-    out[0] = stored[..., 0] - xs[:, within]
-    out[1] = stored[..., 1] - ys
+    out = np.moveaxis(core, -1, 0).astype(np.float32)
+    out[0] = core[..., 0] - xs
+    out[1] = core[..., 1] - ys
     _write_core(g, tile, 1 - slot, k, out, code[csl][:, within])
     # matches made in the halo are the neighbours' seeds for the next round
     halo = code == 0
     halo[csl] = False
     hr, hc = np.nonzero(halo)
-    start = params[hr, hc, :NPARAMS]
+    start = params[hr, (hc - p0) // k, :NPARAMS]
     start[:, F_X] += dc0
     start[:, F_Y] += dr0
     outgoing = seed_rows(hr + wr0, hc + wc0, start)
@@ -539,20 +548,27 @@ def _read_state(state: str, slots: np.ndarray, grid: TileGrid, r0: int, r1: int,
     cedges = np.r_[0, np.cumsum(grid.cols)]
     out = np.full((len(fields), r1 - r0, c1 - c0), np.nan, dtype=np.float32)
     code = np.full((r1 - r0, c1 - c0), UNVISITED, dtype=np.int8)
-    for iy in range(len(grid.rows)):
-        ra, rb = max(r0, int(redges[iy])), min(r1, int(redges[iy + 1]))
-        if ra >= rb:
-            continue
-        for ix in range(len(grid.cols)):
+    # the stored columns of the window: every column, or the lattice columns in compact form
+    sa0, sb0 = (c0, c1) if lattice == 1 else (-(-c0 // lattice), -(-c1 // lattice))
+    if sa0 >= sb0:
+        return out, code
+    iys = [iy for iy in range(len(grid.rows)) if max(r0, redges[iy]) < min(r1, redges[iy + 1])]
+    ixs = [ix for ix in range(len(grid.cols)) if max(c0, cedges[ix]) < min(c1, cedges[ix + 1])]
+    used = sorted({int(slots[iy, ix]) for iy in iys for ix in ixs})
+    # one read of the whole window per slot in use (a read per tile and array cost more than the data)
+    stored = {s: (g[farr][s, list(fields), r0:r1, sa0:sb0], g[carr][s, r0:r1, sa0:sb0]) for s in used}
+    for iy in iys:
+        ra, rb = max(r0, int(redges[iy])) - r0, min(r1, int(redges[iy + 1])) - r0
+        for ix in ixs:
             a, b = max(c0, int(cedges[ix])), min(c1, int(cedges[ix + 1]))
-            # the stored columns of [a, b): every column, or the lattice columns in compact form
             sa, sb = (a, b) if lattice == 1 else (-(-a // lattice), -(-b // lattice))
             if sa >= sb:
                 continue
-            slot = int(slots[iy, ix])
-            cols = slice(sa * lattice - c0, (sb - 1) * lattice - c0 + 1, lattice)
-            out[:, ra - r0 : rb - r0, cols] = g[farr][slot, list(fields), ra:rb, sa:sb]
-            code[ra - r0 : rb - r0, cols] = g[carr][slot, ra:rb, sa:sb]
+            f, cd = stored[int(slots[iy, ix])]
+            part = slice(sa - sa0, sb - sa0)
+            tcols = slice(sa * lattice - c0, (sb - 1) * lattice - c0 + 1, lattice)
+            out[:, ra:rb, tcols] = f[:, ra:rb, part]
+            code[ra:rb, tcols] = cd[ra:rb, part]
     return out, code
 
 
