@@ -73,7 +73,7 @@ def test_register_tile_layers_and_progress(tmp_path, client, capsys):
         with set_options(progress=True):
             register(base, dist, out=tmp_path / "c.zarr", client=client, dense=False)
         assert tile_of(tmp_path / "c.zarr") == (128, 128)
-        assert "ingest (base)" in capsys.readouterr().err
+        assert "ingest (base, distorted)" in capsys.readouterr().err  # both scenes in one phase
     register(base, dist, out=tmp_path / "d.zarr", client=client, dense=False)
     assert tile_of(tmp_path / "d.zarr") == (512, 512)
     assert "ingest" not in capsys.readouterr().err  # no option, no display: as before
