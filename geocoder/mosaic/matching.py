@@ -34,7 +34,7 @@ from ..match.coarse import CoarseAlignment
 from ..match.tiepoints import TiePoints
 from ..pipeline.coarse import _align, georeference_prior, overview
 from ..pipeline.correspond import _tile_task, distorted_window, fit_global
-from ..pipeline.detect import _above, _clipped, _window_candidates
+from ..pipeline.detect import interest_points_many
 from ..pipeline.job import Job
 from ..pipeline.register import RegisterOptions, _check_overlap
 from ..scene import WindowReader
@@ -64,18 +64,6 @@ class _Pair:
     error: GeocoderError | None = None
 
 
-def _tile_grid(image, opts) -> TileGrid:
-    """The interest operator's tiles of one band (as :func:`~geocoder.pipeline.detect.interest_points`)."""
-    h, w = image.shape
-    halo = opts.halo
-    rows = TileGrid.regular(h, w, image.chunksize[0], min_last=halo + 1).rows
-    cols = TileGrid.regular(h, w, image.chunksize[1], min_last=halo + 1).cols
-    for size in (*rows[:-1], *cols[:-1]):
-        if size % opts.cell:
-            raise ValueError(f"tile size {size} is not a multiple of the interest cell {opts.cell}")
-    return TileGrid(h, w, rows, cols)
-
-
 def scene_points(job: Job, names: list[str], images: list[xr.DataArray], readers: list[WindowReader],
                  opts: RegisterOptions) -> list[InterestPoints]:
     """Interest points of every image, all tiles of all images in one tile-parallel stage.
@@ -100,29 +88,9 @@ def scene_points(job: Job, names: list[str], images: list[xr.DataArray], readers
         (the threshold ``f * mean(w)`` over the image's own tiles).
     """
     band = opts.band - 1
-    io = opts.interest
-    tasks, owner = {}, {}
-    for n, (name, image, reader) in enumerate(zip(names, images, readers)):
-        grid = _tile_grid(image.data[band], io)
-        for tile in grid:
-            window, core = _clipped(grid, tile.iy, tile.ix, io.halo)
-            key = f"{name}-{tile.key}"
-            tasks[key] = dask.delayed(_window_candidates, pure=True)(reader, band, window, core, grid.width, io)
-            owner[key] = n
-    parts = job.run_tiles("interest-candidates", tasks, phase="interest points (all scenes)")
-    total, count = np.zeros(len(images)), np.zeros(len(images), dtype=np.int64)
-    for key, (t, c, _) in parts.items():
-        total[owner[key]] += t
-        count[owner[key]] += c
-    out = []
-    for n in range(len(images)):
-        mine = [p[2] for key, p in parts.items() if owner[key] == n]
-        if count[n] == 0:
-            out.append(InterestPoints.concatenate([]))
-            continue
-        w_min = io.f * total[n] / count[n]
-        out.append(InterestPoints.concatenate([_above(p, w_min) for p in mine]))
-    return out
+    return interest_points_many([image.data[band] for image in images], opts.interest, job=job, names=names,
+                                readers=readers, bands=[band] * len(images), stage="interest-candidates",
+                                phase="interest points (all scenes)")
 
 
 def _coarse_task(spec: PairSpec, images: list[xr.DataArray], band: int, dist_band: int, use_georeference: bool,

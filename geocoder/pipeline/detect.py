@@ -113,30 +113,76 @@ def interest_points(image: da.Array, opts: InterestOptions = InterestOptions(), 
     InterestPoints
         Global pixel coordinates, sorted by (row, column).
     """
-    h, w = image.shape
-    grid = TileGrid.regular(h, w, image.chunksize[0], min_last=opts.halo + 1)
-    grid = TileGrid(h, w, grid.rows, TileGrid.regular(h, w, image.chunksize[1], min_last=opts.halo + 1).cols)
-    image = image.rechunk(grid.chunks)
-    for size in (*grid.rows[:-1], *grid.cols[:-1]):
-        if size % opts.cell:
-            raise ValueError(f"tile size {size} is not a multiple of the interest cell {opts.cell}")
+    (points,) = interest_points_many([image], opts, job=job, names=[name], readers=None if reader is None else [reader],
+                                     bands=[band], stage=f"interest-candidates-{name}")
+    return points
+
+
+def interest_points_many(images: list[da.Array], opts: InterestOptions = InterestOptions(), *, job: Job | None = None,
+                         names: list[str], readers: list[WindowReader] | None = None, bands: list[int] | None = None,
+                         stage: str = "interest-candidates", phase: str | None = None) -> list[InterestPoints]:
+    """Interest points of several images, all tiles of all of them in one tile-parallel stage.
+
+    As :func:`interest_points` for each image (its own threshold ``f * mean(w)`` over its own
+    tiles), with one round trip for all: the tasks of one image do not wait for another's.
+
+    Parameters
+    ----------
+    images : list of dask.array.Array
+        One band each, (H, W); their chunks are the tiles.
+    opts : InterestOptions
+    job : Job, optional
+        Keeps every tile's candidates under ``stage`` (a rerun skips them).
+    names : list of str
+        A name per image, unique (the tasks' keys).
+    readers, bands : list, optional
+        The images in their Zarr stores and the 0-based band of each (see :func:`interest_points`).
+    stage, phase : str
+        The job's stage and the progress phase (default ``interest points (NAMES)``).
+
+    Returns
+    -------
+    list of InterestPoints
+        Per image, global pixel coordinates sorted by (row, column).
+    """
+    depth = opts.halo
+    tasks, owner = {}, {}
+    for n, (name, image) in enumerate(zip(names, images)):
+        grid = interest_grid(image, opts)
+        if readers is None:
+            blocks = da.overlap.overlap(image.rechunk(grid.chunks), depth={0: depth, 1: depth}, boundary="none").to_delayed()
+        for tile in grid:
+            window, core = _clipped(grid, tile.iy, tile.ix, depth)
+            key = f"{name}-{tile.key}"
+            if readers is not None:
+                band = 0 if bands is None else bands[n]
+                tasks[key] = dask.delayed(_window_candidates, pure=True)(readers[n], band, window, core, grid.width, opts)
+            else:
+                tasks[key] = dask.delayed(_tile_candidates, pure=True)(blocks[tile.iy, tile.ix], (window[0], window[2]), core,
+                                                                        grid.width, opts)
+            owner[key] = n
     # one pass: every tile gives its sum of w (the seed's threshold f * mean(w) is global)
     # and its thinned candidates; the threshold is applied here, on the gathered candidates
-    depth = opts.halo
-    keys = [(iy, ix) for iy in range(len(grid.rows)) for ix in range(len(grid.cols))]
-    if reader is None:
-        blocks = da.overlap.overlap(image, depth={0: depth, 1: depth}, boundary="none").to_delayed()
-    tasks = {}
-    for iy, ix in keys:
-        window, core = _clipped(grid, iy, ix, depth)
-        if reader is not None:
-            tasks[f"{iy}-{ix}"] = dask.delayed(_window_candidates, pure=True)(reader, band, window, core, w, opts)
-        else:
-            tasks[f"{iy}-{ix}"] = dask.delayed(_tile_candidates, pure=True)(blocks[iy, ix], (window[0], window[2]), core, w, opts)
-    parts = run_tiles(job, f"interest-candidates-{name}", tasks, phase=f"interest points ({name})")
-    total = sum(p[0] for p in parts.values())
-    count = sum(p[1] for p in parts.values())
-    if count == 0:
-        return InterestPoints.concatenate([])
-    w_min = opts.f * total / count
-    return InterestPoints.concatenate([_above(p[2], w_min) for p in parts.values()])
+    parts = run_tiles(job, stage, tasks, phase=phase or f"interest points ({', '.join(names)})")
+    out = []
+    for n in range(len(images)):
+        mine = [p for key, p in parts.items() if owner[key] == n]
+        total, count = sum(p[0] for p in mine), sum(p[1] for p in mine)
+        if count == 0:
+            out.append(InterestPoints.concatenate([]))
+            continue
+        w_min = opts.f * total / count
+        out.append(InterestPoints.concatenate([_above(p[2], w_min) for p in mine]))
+    return out
+
+
+def interest_grid(image: da.Array, opts: InterestOptions) -> TileGrid:
+    """The interest operator's tiles of one band: its chunks, a last tile narrower than the
+    halo merged into the one before; every tile but the last a multiple of ``opts.cell``."""
+    h, w = image.shape
+    rows = TileGrid.regular(h, w, image.chunksize[0], min_last=opts.halo + 1).rows
+    cols = TileGrid.regular(h, w, image.chunksize[1], min_last=opts.halo + 1).cols
+    for size in (*rows[:-1], *cols[:-1]):
+        if size % opts.cell:
+            raise ValueError(f"tile size {size} is not a multiple of the interest cell {opts.cell}")
+    return TileGrid(h, w, rows, cols)

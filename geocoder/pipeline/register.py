@@ -42,7 +42,7 @@ from ..tiles import TileGrid
 from .coarse import submit_coarse_alignment
 from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
-from .detect import InterestOptions, interest_points
+from .detect import InterestOptions, interest_points_many
 from .job import Job, JobRun, fingerprint
 from .lines import line_field, row_corrections
 from .resample import model_status, polynomial_displacement, resample
@@ -223,8 +223,9 @@ def find_tiepoints(
     try:
         with timer("interest points"):
             if points is None:
-                bpts = interest_points(base.data[band], opts.interest, job=job, name="base", reader=base_reader, band=band)
-                dpts = interest_points(dist.data[dband], opts.interest, job=job, name="distorted", reader=dist_reader, band=dband)
+                bpts, dpts = interest_points_many([base.data[band], dist.data[dband]], opts.interest, job=job,
+                                                  names=["base", "distorted"], readers=[base_reader, dist_reader],
+                                                  bands=[band, dband])
             else:
                 bpts, dpts = points
         with timer("coarse alignment"):
