@@ -2,7 +2,8 @@
 
 The whole register job (ingest, interest points, correspondence, dense matching or not,
 resampling, writing) on simulated pairs (procedural ortho + known warp), on a local cluster
-of worker processes. Worker memory is the resident set of every worker process, sampled
+of worker processes, each after a 256² warm-up job on the same cluster (the kernels compiled or
+loaded from numba's cache). Worker memory is the resident set of every worker process, sampled
 from outside (psutil) every 50 ms, so a busy worker is measured too.
 
     python benchmarks/bench_cluster.py                       # polynomial 2048/8192, dense 2048/4096
@@ -129,6 +130,11 @@ def run(size: str, workers: int, dense: bool, work: Path, tile: int, trace: bool
     out = work / f"out-{size}-{workers}-{dense}.zarr"
     with local_cluster(workers) as cluster, Client(cluster) as c:
         pids = list(c.run(os.getpid).values())
+        # a small job first: the workers compile (or load from numba's cache) the kernels, as
+        # for any job after the first on a running cluster (a fresh clone has no cache: 15-20 s)
+        wb, wd = make_scene("256", work)
+        register(wb, wd, out=work / f"warm-{workers}-{dense}.zarr", tile=128, dense=dense, client=c, resume=False,
+                 overwrite=True, show_progress=False)
         if trace:
             c.register_plugin(TaskMemory())
         t0 = time.perf_counter()
