@@ -119,7 +119,7 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
         ``dx``, ``dy``, ``sigma_x``, ``sigma_y``, ``correlation`` (float32) and ``status`` (uint8).
     """
     shrink = fits is not None and bool(fits.ok.any())
-    height, width = sum(chunks[0]), sum(chunks[1])
+    width = sum(chunks[1])
     table = np.column_stack([rows.first, rows.last, rows.cx, rows.cy, rows.sx, rows.sy,
                              *([fit_table(fits)] if shrink else [])]).astype(np.float64)
     tab = da.from_array(table.T[:, :, None], chunks=((table.shape[1],), chunks[0], (1,)))
@@ -128,7 +128,6 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
     stack = da.map_blocks(_line_block, tab, cols, chunks=((6,), *chunks), dtype=np.float32, name=f"line-field-{token}",
                           store=store, width=width, mapping=mapping, options=options, shrink=shrink,
                           correlation=correlation)
-    assert stack.shape == (6, height, width)
     out = {name: stack[k] for k, name in enumerate(("dx", "dy", "status", "sigma_x", "sigma_y", "correlation"))}
     out["status"] = out["status"].astype(np.uint8)
     return out
