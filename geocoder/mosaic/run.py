@@ -40,6 +40,7 @@ import xarray as xr
 from affine import Affine
 
 from .. import progress
+from .._version import __version__
 from ..adjust.models import RPC
 from ..cog import to_cog
 from ..conventions import georeference
@@ -49,7 +50,7 @@ from ..kernels.polynomial import fit_polymap
 from ..multiscales import write_overviews
 from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
-from ..pipeline.job import Job, JobRun, fingerprint
+from ..pipeline.job import Job, JobRun, fingerprint, input_identity
 from ..pipeline.register import RegisterOptions, _Timer, ingest_all, job_directory
 from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
@@ -503,9 +504,12 @@ def mosaic(
     summary = MosaicSummary(scenes=[s.attrs["source"] for s in opened], seam_mode=seams)
     timer = _Timer(summary)  # type: ignore[arg-type]
     allowed = set(range(len(scenes)) if control_scenes is None else control_scenes)
-    key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile, output_tile=output_tile,
-                      control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance, dense=dense,
-                      model=model, dem=None if dem is None else str(dem))
+    # the inputs' content identity and the version, as register's: a scene, reference or DEM
+    # replaced at the same path, or another geocoder, must not reuse the job's finished work
+    key = fingerprint(scenes=[input_identity(s) for s in scenes], reference=input_identity(reference),
+                      dem=None if dem is None else input_identity(dem), options=repr(opts), output_tile=output_tile,
+                      control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance,
+                      dense=dense, model=model, version=__version__)
     job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
             dask_client(client, scheduler) as c:
