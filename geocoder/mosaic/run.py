@@ -122,6 +122,10 @@ class MosaicSummary:
         RMS grey-value step along all seams.
     seam_cells_moved : int
         Coarse cells the least-cost cut gave another scene than the centre rule.
+    job : dict
+        The job's tile tasks of this run (:meth:`geocoder.pipeline.job.Job.report`): ``resumed``,
+        ``tile_tasks``, ``run``, ``skipped`` (finished by an earlier, interrupted run),
+        ``recomputed`` and ``recomputed_fraction``; the dense refinement's tiles are not counted.
     """
 
     scenes: list[str]
@@ -144,6 +148,7 @@ class MosaicSummary:
     seams: list[dict] = field(default_factory=list)
     seam_grey_step: float = float("nan")
     seam_cells_moved: int = 0
+    job: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -167,6 +172,9 @@ class MosaicSummary:
                + ", ".join(f"{p['i']}-{p['j']}: {p.get('tie_mismatch_px', float('nan')):.3f}" for p in self.seams)]
               if self.seams else []),
             f"mosaic: {self.shape[0]} x {self.shape[1]} px",
+            *([f"resumed: {self.job['skipped']} of {self.job['tile_tasks']} tile tasks finished earlier, "
+               f"at most {self.job['recomputed']} ({self.job['recomputed_fraction']:.1%}) computed again"]
+              if self.job.get("resumed") else []),
             "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
         ]
 
@@ -511,6 +519,8 @@ def mosaic(
                       control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance,
                       dense=dense, model=model, version=__version__)
     job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
+    if job.resumed:
+        log.info("resuming the job in %s", job.path)
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
             dask_client(client, scheduler) as c:
         run.connected = c.scheduler.address
@@ -647,6 +657,7 @@ def mosaic(
                 for t in grid}
             done = job.run_tiles("mosaic", tasks, phase="mosaic tiles")
         _seam_figures(summary, [d["seams"] for d in done.values()], block, problem, result)
+        summary.job = job.report()
         import zarr
 
         zarr.open_group(store, mode="r+").attrs.update({
