@@ -20,8 +20,10 @@ import numpy as np
 import pytest
 from distributed import Client
 from pairs import assert_identical, load_output, write_synthetic_pair
+from test_mosaic import block  # noqa: F401 (the module's fixture: the mosaic block's files)
 
 from geocoder import register
+from geocoder.mosaic import mosaic
 from geocoder.pipeline.register import job_directory
 
 pytestmark = pytest.mark.cluster
@@ -93,6 +95,19 @@ def test_cluster_up_runs_the_same_job_bit_for_bit(pair_dir, reference, launched)
         assert phase in r.stderr
     assert_identical(load_output(out), reference)
     assert not Path(job_directory(str(out))).exists()
+
+
+def test_mosaic_on_cluster_up_is_the_embedded_mosaic(block, client, launched, tmp_path):  # noqa: F811
+    """The mosaic (two scenes of test_mosaic's block) on a `cluster up` cluster: the embedded run's output."""
+    cluster_file, _ = launched
+    d, paths = block
+    here = mosaic(paths[:2], reference=d / "ortho.tif", out=tmp_path / "embedded.zarr", tile=128, client=client)
+    there = mosaic(paths[:2], reference=d / "ortho.tif", out=tmp_path / "cluster.zarr", tile=128,
+                   scheduler=str(cluster_file))
+    for name in ("mosaic", "source"):
+        assert np.array_equal(there[name].values, here[name].values, equal_nan=True), name
+    for name in ("models", "radiometry", "scenes"):
+        assert there.attrs[name] == here.attrs[name], name
 
 
 def test_worker_killed_during_dense_matching(pair_dir, reference, launched):

@@ -40,6 +40,7 @@ import xarray as xr
 from affine import Affine
 
 from .. import progress
+from .._version import __version__
 from ..adjust.models import RPC
 from ..cog import to_cog
 from ..conventions import georeference
@@ -49,7 +50,7 @@ from ..kernels.polynomial import fit_polymap
 from ..multiscales import write_overviews
 from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
-from ..pipeline.job import Job, JobRun, fingerprint
+from ..pipeline.job import Job, JobRun, fingerprint, input_identity
 from ..pipeline.register import RegisterOptions, _Timer, ingest_all, job_directory
 from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
@@ -121,6 +122,10 @@ class MosaicSummary:
         RMS grey-value step along all seams.
     seam_cells_moved : int
         Coarse cells the least-cost cut gave another scene than the centre rule.
+    job : dict
+        The job's tile tasks of this run (:meth:`geocoder.pipeline.job.Job.report`): ``resumed``,
+        ``tile_tasks``, ``run``, ``skipped`` (finished by an earlier, interrupted run),
+        ``recomputed`` and ``recomputed_fraction``; the dense refinement's tiles are not counted.
     """
 
     scenes: list[str]
@@ -143,6 +148,7 @@ class MosaicSummary:
     seams: list[dict] = field(default_factory=list)
     seam_grey_step: float = float("nan")
     seam_cells_moved: int = 0
+    job: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -166,6 +172,9 @@ class MosaicSummary:
                + ", ".join(f"{p['i']}-{p['j']}: {p.get('tie_mismatch_px', float('nan')):.3f}" for p in self.seams)]
               if self.seams else []),
             f"mosaic: {self.shape[0]} x {self.shape[1]} px",
+            *([f"resumed: {self.job['skipped']} of {self.job['tile_tasks']} tile tasks finished earlier, "
+               f"at most {self.job['recomputed']} ({self.job['recomputed_fraction']:.1%}) computed again"]
+              if self.job.get("resumed") else []),
             "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
         ]
 
@@ -503,10 +512,15 @@ def mosaic(
     summary = MosaicSummary(scenes=[s.attrs["source"] for s in opened], seam_mode=seams)
     timer = _Timer(summary)  # type: ignore[arg-type]
     allowed = set(range(len(scenes)) if control_scenes is None else control_scenes)
-    key = fingerprint(scenes=[str(s) for s in scenes], reference=str(reference), order=order, tile=tile, output_tile=output_tile,
-                      control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance, dense=dense,
-                      model=model, dem=None if dem is None else str(dem))
+    # the inputs' content identity and the version, as register's: a scene, reference or DEM
+    # replaced at the same path, or another geocoder, must not reuse the job's finished work
+    key = fingerprint(scenes=[input_identity(s) for s in scenes], reference=input_identity(reference),
+                      dem=None if dem is None else input_identity(dem), options=repr(opts), output_tile=output_tile,
+                      control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance,
+                      dense=dense, model=model, version=__version__)
     job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
+    if job.resumed:
+        log.info("resuming the job in %s", job.path)
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \
             dask_client(client, scheduler) as c:
         run.connected = c.scheduler.address
@@ -643,6 +657,7 @@ def mosaic(
                 for t in grid}
             done = job.run_tiles("mosaic", tasks, phase="mosaic tiles")
         _seam_figures(summary, [d["seams"] for d in done.values()], block, problem, result)
+        summary.job = job.report()
         import zarr
 
         zarr.open_group(store, mode="r+").attrs.update({

@@ -157,11 +157,12 @@ def plan_seams(job, store: str, grid_shape: tuple[int, int], tile: int, transfor
     samples = min(samples, factor)
     cshape = (-(-grid_shape[0] // factor), -(-grid_shape[1] // factor))
     info = {"factor": factor, "shape": list(cshape), "store": f"{store}/{SEAM_GROUP}"}
-    if job.done("seams"):
-        g = zarr.open_group(store, mode="r")[SEAM_GROUP]
-        return {**info, "changed": int(g.attrs.get("changed", 0))}
     ctile = factor * math.ceil(tile / factor)
     cgrid = TileGrid.regular(*grid_shape, ctile)
+    if job.done("seams"):
+        job.count("seam cells", run=0, skipped=len(cgrid))  # as run_tiles would, for the job's report
+        g = zarr.open_group(store, mode="r")[SEAM_GROUP]
+        return {**info, "changed": int(g.attrs.get("changed", 0))}
     tasks = {f"seam-{t.key}": dask.delayed(coarse_tile, pure=True)(
         (t.row0, t.row1, t.col0, t.col1), transform, models, readers, shapes, balance, boxes, factor, samples, dem)
         for t in cgrid}

@@ -20,6 +20,9 @@ import re
 import time
 from typing import Any, Callable
 
+import dask.base
+import xarray as xr
+
 from .. import progress, storage
 from ..errors import EnvironmentFailure, GeocoderError, OutputError, as_environment_failure
 from ..outputs import LOCK_FILE, OutputLock
@@ -32,6 +35,28 @@ def fingerprint(**parts: Any) -> str:
     """A stable hash of the job's identity (inputs with their size and time, options, version)."""
     text = json.dumps(parts, sort_keys=True, default=repr)
     return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def input_identity(src: Any) -> Any:
+    """What tells a changed input of a job from an unchanged one, for its :func:`fingerprint`.
+
+    Parameters
+    ----------
+    src : str, PathLike or xarray.DataArray
+        A file, store or URL (its location, size and time or ETag: :func:`geocoder.storage.identity`),
+        or an image in memory (the dask token of its data).
+
+    Returns
+    -------
+    object
+        A JSON-able value that changes when the input does; the bare location if it cannot be read.
+    """
+    if isinstance(src, xr.DataArray):
+        return dask.base.tokenize(src.data)
+    try:
+        return storage.identity(os.fspath(src))
+    except OSError:
+        return os.fspath(src)
 
 
 def _dump(value: Any) -> bytes:

@@ -43,7 +43,7 @@ from .coarse import submit_coarse_alignment
 from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points_many
-from .job import Job, JobRun, fingerprint
+from .job import Job, JobRun, fingerprint, input_identity
 from .lines import line_field, row_corrections
 from .resample import model_status, polynomial_displacement, resample
 
@@ -512,19 +512,12 @@ def _open_job(out: str, key: str, resume: bool) -> Job:
 
 
 def _job_key(base, distorted, bscene, dscene, opts: RegisterOptions, nodata, dist_nodata) -> str:
-    def identity(src, scene):
-        if isinstance(src, xr.DataArray):
-            return dask.base.tokenize(scene.data)
-        try:
-            return storage.identity(os.fspath(src))
-        except OSError:
-            return os.fspath(src)
-
     from .._version import __version__
 
     return fingerprint(
-        base=identity(base, bscene), distorted=identity(distorted, dscene), options=repr(opts),
-        nodata=[nodata, dist_nodata], version=__version__,
+        base=input_identity(bscene if isinstance(base, xr.DataArray) else base),
+        distorted=input_identity(dscene if isinstance(distorted, xr.DataArray) else distorted),
+        options=repr(opts), nodata=[nodata, dist_nodata], version=__version__,
     )
 
 
