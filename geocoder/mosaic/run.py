@@ -551,7 +551,7 @@ def mosaic(
                 if k in allowed:
                     ex, ny = pixel_to_world(transform, tp.base_x, tp.base_y)
                     control.append(Matches(-1, k, np.column_stack([ex, ny]), np.column_stack([tp.dist_x, tp.dist_y]),
-                                           np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+                                           np.column_stack([tp.sigma_x, tp.sigma_y])))
         summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
         ties = []
         with timer("tie points"):
@@ -568,7 +568,7 @@ def mosaic(
                 tp, _, _ = result
                 tp = tp.select(tp.inlier)
                 ties.append(Matches(i, j, np.column_stack([tp.base_x, tp.base_y]), np.column_stack([tp.dist_x, tp.dist_y]),
-                                    np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+                                    np.column_stack([tp.sigma_x, tp.sigma_y])))
                 summary.pairs.append({"i": i, "j": j, "ties": len(tp)})
         ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
         for k in range(len(opened)):
