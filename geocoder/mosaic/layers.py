@@ -88,16 +88,26 @@ def model_layers(model, params: np.ndarray, cov: np.ndarray | None, transform: A
     cov_out : ndarray, shape (3, rows, cols)
         ``var_x, cov_xy, var_y`` of the model's position in output pixels squared.
     inverse : ndarray, shape (2, 2, rows, cols)
-        ``d(output pixel) / d(scene pixel)``, to take a scene-pixel covariance to output pixels.
+        ``d(output pixel) / d(scene pixel)`` (over the DEM's slope, with one), to take a
+        scene-pixel covariance to output pixels.
     """
     r0, r1, c0, c1 = window
     nr, nc = _nodes(r0, r1, step), _nodes(c0, c1, step)
     cols, rows = np.meshgrid(nc.astype(np.float64), nr.astype(np.float64))
     e, n = pixel_to_world(transform, cols.ravel(), rows.ravel())
-    h = np.zeros(e.size) if dem is None else np.asarray(dem(e, n), dtype=np.float64).ravel()
+    m = e.size
+    slope = np.zeros((m, 2))
+    if dem is None:
+        h = np.zeros(m)
+    else:  # the heights at the nodes and half a pixel either side along columns and rows
+        dc, dr = np.array([0.0, -0.5, 0.5, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, -0.5, 0.5])
+        ee, nn = pixel_to_world(transform, cols.ravel()[None] + dc[:, None], rows.ravel()[None] + dr[:, None])
+        hh = np.asarray(dem(ee.ravel(), nn.ravel()), dtype=np.float64).reshape(5, m)
+        h, slope = hh[0], np.column_stack([hh[2] - hh[1], hh[4] - hh[3]])
     jp, jg = model.jacobians(params, np.column_stack([e, n, h]))
-    # d(scene) / d(output col, row) = d(scene) / d(E, N) . d(E, N) / d(col, row)
+    # d(scene) / d(output col, row) = d(scene) / d(E, N) . d(E, N) / d(col, row) + d(scene) / dh . dh / d(col, row)
     jac = jg[:, :, :2] @ np.array([[transform.a, transform.b], [transform.d, transform.e]])
+    jac = jac + jg[:, :, 2:3] * slope[:, None, :]
     with np.errstate(invalid="ignore"):
         inv = np.linalg.inv(np.where(np.isfinite(jac), jac, np.nan))
     if cov is None or not np.all(np.isfinite(cov)):
