@@ -21,7 +21,8 @@ class Status(IntEnum):
     NO_TEXTURE : int
         4: not matched: too little texture.
     MODEL : int
-        5: displacement from the global polynomial only.
+        5: displacement from the global polynomial only (a mosaic's ``status``: the position
+        from the source scene's adjusted model, :mod:`geocoder.mosaic.layers`).
     ESTIMATED : int
         6: not matched (no texture or a rejected blunder); the global polynomial plus the
         mean residual of the matches of its scan line (:mod:`geocoder.quality.lines`).

@@ -24,14 +24,16 @@ from ..adjust.solver import AdjustOptions, AdjustResult, Frame, Problem, adjust
 class Matches:
     """Matched points: ``a`` in scene ``i`` (or the map, ``i = -1``), ``b`` in scene ``j``.
 
-    ``sigma`` is the matching precision in pixels of scene ``j`` (and ``i``).
+    ``sigma`` is the matching precision ``(sigma_x, sigma_y)`` in pixels of scene ``j`` (and
+    ``i``): the standard deviations of the least-squares match (its covariance has no
+    ``x``/``y`` correlation term in :class:`~geocoder.match.tiepoints.TiePoints`).
     """
 
     i: int
     j: int
     a: np.ndarray  # (n, 2)
     b: np.ndarray  # (n, 2)
-    sigma: np.ndarray  # (n,)
+    sigma: np.ndarray  # (n, 2)
 
     def __len__(self) -> int:
         return len(self.sigma)
@@ -86,7 +88,7 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
         Standard deviation of the control points' map coordinates (map units; the
         reference's pixels are the truth here, their matching error is in the scenes).
     min_sigma : float
-        Floor of the matching sigma (pixels) in the observation weights.
+        Floor of the matching sigmas (pixels) in the observation weights.
     models : list of (model, params), optional
         Every scene's sensor model and its start values; default a :class:`MapPolynomial`
         of ``order`` fitted to ``approx``.
@@ -96,6 +98,8 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
     Returns
     -------
     Problem
+        Every image observation weighted by the inverse of its match's 2 x 2 covariance,
+        ``diag(sigma_x^-2, sigma_y^-2)`` (each sigma floored at ``min_sigma``).
     """
     def heights(e: np.ndarray, n: np.ndarray) -> np.ndarray:
         return np.zeros(np.shape(e)) if height is None else np.asarray(height(e, n), dtype=np.float64)
@@ -147,7 +151,7 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
         oxy.append(t.b)
         osig.append(t.sigma)
     g = np.concatenate(ground) if ground else np.zeros((0, 3))
-    sig = np.maximum(np.concatenate(osig), min_sigma) if osig else np.zeros(0)
+    sig = np.maximum(np.concatenate(osig), min_sigma) if osig else np.zeros((0, 2))
     return Problem(
         frames=frames,
         ground=g.copy(),
@@ -156,7 +160,7 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
         obs_frame=np.concatenate(ofr).astype(np.int64) if ofr else np.zeros(0, np.int64),
         obs_point=np.concatenate(opt).astype(np.int64) if opt else np.zeros(0, np.int64),
         obs_xy=np.concatenate(oxy).astype(np.float64) if oxy else np.zeros((0, 2)),
-        obs_weight=np.eye(2)[None] / (sig**2)[:, None, None],
+        obs_weight=np.eye(2)[None] / (sig**2)[:, :, None],
     )
 
 

@@ -43,7 +43,7 @@ from .. import progress
 from .._version import __version__
 from ..adjust.models import RPC
 from ..cog import to_cog
-from ..conventions import georeference
+from ..conventions import georeference, status_attrs
 from ..errors import GeocoderError, InputError
 from ..geometry import pixel_to_world, world_to_pixel
 from ..kernels.polynomial import fit_polymap
@@ -60,6 +60,7 @@ from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
 from .heights import MapDEM, ref_to_scene_prior
+from .layers import field_layers, model_layers, pixel_sigma, scene_uncertainty
 from .matching import PairSpec, match_pairs, scene_points
 from .projection import project_window
 from .radiometry import seam_step, solve_balance
@@ -280,7 +281,8 @@ def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int
 def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
                  shapes: list, feather_px: float, method: str, balance: np.ndarray, fields: list,
                  origin: tuple[int, int], boxes: np.ndarray, seams: dict | None = None,
-                 grid_shape: tuple[int, int] | None = None, dem=None) -> dict:
+                 grid_shape: tuple[int, int] | None = None, dem=None, covs: list | None = None,
+                 unmodelled: np.ndarray | None = None) -> dict:
     """Compute and write one output tile; returns the pixels covered and its seam statistics.
 
     Only the scenes whose footprint box (``boxes``: ``row0, row1, col0, col1`` in output
@@ -291,6 +293,10 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
     it, the seams are nearest each scene's centre (:func:`~geocoder.mosaic.compose.blend`).
     The tile is computed with one more row and column (inside the mosaic) so that a seam
     between this tile's last pixel and the next tile's first is counted here, once.
+
+    The tile's ``status``, ``sigma_x`` and ``sigma_y`` are those of each pixel's ``source``
+    scene (:mod:`geocoder.mosaic.layers`), from ``covs`` (every scene's parameter covariance,
+    or None) and ``unmodelled`` (``(K, 2)``, its unmodelled variance, scene pixels squared).
 
     Returns
     -------
@@ -315,6 +321,8 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
     nb = readers[0].shape[0] if readers else 1
     values = np.full((near.size, nb, e1 - r0, f1 - c0), np.nan, dtype=np.float32)
     scores = np.full((near.size, e1 - r0, f1 - c0), np.nan)
+    codes = np.full((near.size, e1 - r0, f1 - c0), Status.OUTSIDE, dtype=np.uint8)
+    sigmas = np.full((near.size, 2, e1 - r0, f1 - c0), np.nan, dtype=np.float32)
     for i, k in enumerate(near):
         (model, params), reader, shape = models[k], readers[k], shapes[k]
         x, y = _scene_xy(model, params, transform, ext, fields[k], origin, heights)
@@ -323,6 +331,10 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
             continue
         scores[i] = np.where(s <= 1.0, s, np.nan)
         values[i] = balance[k, :, 0, None, None] * reader.sample(x, y, method=method) + balance[k, :, 1, None, None]
+        codes[i], sx, sy = field_layers(fields[k], ext, origin)
+        cov_model, inverse = model_layers(model, params, None if covs is None else covs[k], transform, ext, dem,
+                                          None if unmodelled is None else unmodelled[k])
+        sigmas[i] = pixel_sigma(codes[i], cov_model, inverse, sx, sy)
     feather = 2.0 * feather_px / max(min(min(s) for s in shapes), 1)
     mosaic, source, _ = blend(values, scores, feather=feather)
     if near.size:  # blend counts the scenes of this tile; the store names them by block index
@@ -346,6 +358,13 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
         mosaic = np.where(use[None], labelled, mosaic)
         best = near[np.argmax(weight, axis=0)].astype(np.uint16)
         source = np.where(own_valid, own, np.where(use, best, source)).astype(np.uint16)
+    status = np.full(source.shape, Status.OUTSIDE, dtype=np.uint8)
+    sigma = np.full((2, *source.shape), np.nan, dtype=np.float32)
+    if near.size:  # the layers of each pixel's source scene
+        has = source != NO_SOURCE
+        at = np.minimum(np.searchsorted(near, source), near.size - 1)[None]
+        status = np.where(has, np.take_along_axis(codes, at, axis=0)[0], status)
+        sigma = np.where(has, np.take_along_axis(sigmas, at[:, None], axis=0)[0], sigma)
     stats: dict = {}
     if near.size:
         rr, cc, a, b = seam_pairs(source, rows=r1 - r0, cols=c1 - c0)
@@ -365,6 +384,9 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
     g = zarr.open_group(store, mode="r+")
     g["mosaic"][:, r0:r1, c0:c1] = mosaic[:, : r1 - r0, : c1 - c0]
     g["source"][r0:r1, c0:c1] = source[: r1 - r0, : c1 - c0]
+    g["status"][r0:r1, c0:c1] = status[: r1 - r0, : c1 - c0]
+    g["sigma_x"][r0:r1, c0:c1] = sigma[0, : r1 - r0, : c1 - c0]
+    g["sigma_y"][r0:r1, c0:c1] = sigma[1, : r1 - r0, : c1 - c0]
     if heights is not None:
         g["height"][r0:r1, c0:c1] = heights[: r1 - r0, : c1 - c0].astype(np.float32)
     return {"covered": int((source[: r1 - r0, : c1 - c0] != NO_SOURCE).sum()), "seams": stats}
@@ -466,9 +488,19 @@ def mosaic(
     -------
     xarray.Dataset
         ``mosaic (band, y, x)`` float32, ``source (y, x)`` uint16 (index into
-        ``attrs["scenes"]``, 65535 = none), the reference CRS and transform; ``attrs``: the
-        adjusted ``models``, the ``radiometry`` (gain, offset per scene and band) and the
-        ``summary`` (JSON).
+        ``attrs["scenes"]``, 65535 = none), ``status (y, x)`` uint8 (what the pixel's position
+        in its source scene rests on, :class:`~geocoder.status.Status` with CF
+        ``flag_values``/``flag_meanings``: ``matched`` or ``filled`` from the dense field,
+        ``model`` (or ``blunder``, ``no_texture`` where the dense matcher rejected or could
+        not match it) from the adjusted model, ``outside`` where no scene covers it),
+        ``sigma_x``, ``sigma_y (y, x)`` float32 (standard deviation of that position along
+        the output's columns and rows, output pixels: the dense match's where matched, else
+        the adjustment's covariance propagated to the pixel plus the scene's mean squared
+        residual; a feathered pixel's are its ``source`` scene's;
+        :mod:`geocoder.mosaic.layers`), ``height (y, x)`` with a ``dem``, the reference CRS
+        and transform; ``attrs``: the adjusted ``models``, the ``radiometry`` (gain, offset
+        per scene and band) and the ``summary`` (JSON). With ``out``, overview levels of every
+        variable (``status`` and ``source`` nearest, the others averaged).
     """
     if not scenes:
         raise InputError("scenes", "no scenes given")
@@ -565,7 +597,7 @@ def mosaic(
                 if k in allowed:
                     ex, ny = pixel_to_world(transform, tp.base_x, tp.base_y)
                     control.append(Matches(-1, k, np.column_stack([ex, ny]), np.column_stack([tp.dist_x, tp.dist_y]),
-                                           np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+                                           np.column_stack([tp.sigma_x, tp.sigma_y])))
         summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
         ties = []
         with timer("tie points"):
@@ -582,7 +614,7 @@ def mosaic(
                 tp, _, _ = result
                 tp = tp.select(tp.inlier)
                 ties.append(Matches(i, j, np.column_stack([tp.base_x, tp.base_y]), np.column_stack([tp.dist_x, tp.dist_y]),
-                                    np.hypot(tp.sigma_x, tp.sigma_y) / math.sqrt(2)))
+                                    np.column_stack([tp.sigma_x, tp.sigma_y])))
                 summary.pairs.append({"i": i, "j": j, "ties": len(tp)})
         ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
         for k in range(len(opened)):
@@ -650,10 +682,12 @@ def mosaic(
                 plan = plan_seams(job, store, grid_shape, output_tile, out_transform, models, [readers[k] for k in block],
                                   [shapes[k] for k in block], gains, boxes, block_pairs, dem=heights)
                 summary.seam_cells_moved = plan.pop("changed")
+        covs, unmodelled = scene_uncertainty(problem, result, len(block))
         with timer("mosaic"):
             tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
                 store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
-                [shapes[k] for k in block], feather, resampling, gains, fields, origin, boxes, plan, grid_shape, heights)
+                [shapes[k] for k in block], feather, resampling, gains, fields, origin, boxes, plan, grid_shape, heights,
+                covs, unmodelled)
                 for t in grid}
             done = job.run_tiles("mosaic", tasks, phase="mosaic tiles")
         _seam_figures(summary, [d["seams"] for d in done.values()], block, problem, result)
@@ -789,10 +823,12 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
                                      boundary="none", dtype=np.float32, max_rows=CARRY_ROWS)
             part = xr.Dataset(
                 {"dx": (("y", "x"), carried[0]), "dy": (("y", "x"), carried[1]),
-                 "status": (("y", "x"), carried[2].astype(np.uint8))},
+                 "status": (("y", "x"), carried[2].astype(np.uint8)),
+                 **{name: (("y", "x"), field_[name][r0:r1, c0:c1].rechunk(rows)) for name in ("sigma_x", "sigma_y")}},
                 attrs={"row0": r0, "col0": c0, "long_name": "displacement reference pixel -> scene pixel",
                        "filled": f"matched, or filled along the row (short holes interpolated by the post-filter, "
-                                 f"other pixels within {CARRY_PX} px of a match carried from the nearest one)"})
+                                 f"other pixels within {CARRY_PX} px of a match carried from the nearest one)",
+                       "sigma": "sigma_x, sigma_y: standard deviations of the matched pixels' dx, dy (NaN elsewhere)"})
             part.to_zarr(store, group=group, mode="w", zarr_format=3, consolidated=False)
             sub.save("field")
         return {"store": f"{store}/{group}", "row0": r0, "col0": c0, "shape": (r1 - r0, c1 - c0)}
@@ -938,6 +974,21 @@ def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nband
     if heights:
         ds["height"] = (("y", "x"), da.full((height, width), np.nan, dtype=np.float32, chunks=chunks[1:]),
                         {"long_name": "ground height of the pixel (the DEM's, bilinear)", "units": "m"})
+    ds["status"] = (("y", "x"), da.zeros((height, width), dtype=np.uint8, chunks=chunks[1:]), {
+        **status_attrs(), "long_name": "what the pixel's position in its source scene rests on",
+        "comment": "matched, filled: the position in the source scene is its dense field's (--dense; matched, or "
+                   "filled along the row); blunder, no_texture: the dense matcher rejected the pixel or found too "
+                   "little texture, and model: no dense field there; the position is the scene's adjusted model's; "
+                   "outside: no scene covers the pixel"})
+    for name, axis in (("sigma_x", "columns (x)"), ("sigma_y", "rows (y)")):
+        ds[name] = (("y", "x"), da.full((height, width), np.nan, dtype=np.float32, chunks=chunks[1:]), {
+            "long_name": f"standard deviation of the pixel's position along the output's {axis}",
+            "units": "pixel",
+            "comment": "of the position in the source scene (a feathered pixel: the scene source names): the "
+                       "dense match's sigma where matched; elsewhere the block adjustment's parameter covariance "
+                       "(with sigma0 taken as at least 1) propagated to the pixel, plus the scene's mean squared "
+                       "residual; NaN where unknown (no covariance) or no scene covers the pixel "
+                       "(geocoder.mosaic.layers)"})
     if ref.attrs.get("georeferenced"):
         ds = georeference(ds, ref.rio.crs, transform)
     return ds, grid, transform
