@@ -58,7 +58,8 @@ def _files(d, scenes: list[BlockScene], blank: tuple[slice, slice], seed: int) -
 
 
 def _figures(ds, scenes: list[BlockScene]) -> tuple[list[tuple[float, float, int]], float]:
-    """Per scene, RMSE and max of the mosaic's error over the pixels taken from it (output px), their count; the seam RMS."""
+    """Per scene, RMSE and max of the mosaic's error (output px) over the pixels taken from it and
+    their count; the RMS disagreement of the scenes wherever two overlap."""
     own, seam = mosaic_errors(ds, [s.to_ortho for s in scenes], [(SIZE, SIZE)] * len(scenes), ORTHO)
     source = ds.source.values
     out = []
@@ -88,14 +89,18 @@ def test_a_scene_blank_on_the_reference_is_placed_through_its_neighbours(client,
 
 def test_a_chain_of_scenes_missing_from_the_reference(client, tmp_path):
     paths = _files(tmp_path, STRIP, (slice(None), slice(64 + int(SIZE * 0.55), None)), seed=31)
-    ds = mosaic(paths, reference=tmp_path / "ortho.tif", tile=128, client=client)
+    write_geotiff(tmp_path / "flat.tif", np.full((128, 128), 50.0, dtype=np.float32))  # found nowhere
+    ds = mosaic([*paths, tmp_path / "flat.tif"], reference=tmp_path / "ortho.tif", tile=128, client=client)
     s = json.loads(ds.attrs["summary"])
-    assert s["placed"] == {"0": "reference", "1": "via scene 0", "2": "via scene 1"}
-    assert s["control_points"][0] > 0 and s["control_points"][1:] == [0, 0]
-    assert s["left_out"] == {} and {(p["i"], p["j"]) for p in s["pairs"] if p["ties"]} == {(0, 1), (1, 2)}
+    assert s["placed"] == {"0": "reference", "1": "via scene 0", "2": "via scene 1", "3": "not placed"}
+    assert s["control_points"][0] > 0 and s["control_points"][1:] == [0, 0, 0]
+    assert list(s["left_out"]) == ["3"] and s["left_out"]["3"].startswith("not found on the reference")
+    assert "nor on a placed scene (too little texture to match it" in s["left_out"]["3"]
+    assert s["block"] == [0, 1, 2] and {(p["i"], p["j"]) for p in s["pairs"] if p["ties"]} == {(0, 1), (1, 2)}
     figures, seam = _figures(ds, STRIP)
     print("strip, per scene (rmse, max, pixels):", figures, "seam rms:", seam)
-    # scene 2 hangs on scene 1's ties, scene 1 on scene 0's, scene 0 has control on half of it: the error grows along the chain
+    # scene 2 hangs on scene 1's ties, scene 1 on scene 0's, scene 0 has control on half of it:
+    # the error grows along the chain
     assert figures[0][0] < 0.05 and figures[1][0] < 0.15 and figures[2][0] < 0.4 and figures[2][1] < 0.8
     assert seam < 0.1
     # nothing of scene 2 is cut off (its footprint is its adjusted model's, not the overlap's extrapolation)

@@ -52,6 +52,8 @@ class Placement:
         Scene index -> the placed scenes it was tried against, for the scenes that stay unplaced.
     failed : dict
         Scene index -> ``{neighbour: why the pair could not be matched}``.
+    notes : dict
+        Scene index -> why it was not tried at all (e.g. too little texture).
     rounds : int
         Matching rounds run.
     """
@@ -60,6 +62,26 @@ class Placement:
     ties: dict[int, dict[int, int]] = field(default_factory=dict)
     tried: dict[int, list[int]] = field(default_factory=dict)
     failed: dict[int, dict[int, str]] = field(default_factory=dict)
+    notes: dict[int, str] = field(default_factory=dict)
+
+    def why_not(self, u: int) -> str:
+        """Why scene ``u`` was not placed by a neighbour.
+
+        Parameters
+        ----------
+        u : int
+            Scene index.
+
+        Returns
+        -------
+        str
+        """
+        if u in self.notes:
+            return self.notes[u]
+        failed = self.failed.get(u, {})
+        if not failed:
+            return "no placed scene overlaps it"
+        return f"matched in vain with scene(s) {', '.join(map(str, sorted(failed)))}: {next(iter(failed.values()))}"
     rounds: int = 0
 
 
@@ -242,16 +264,21 @@ def place_by_neighbours(job: Job, images: list[xr.DataArray], readers: list[Wind
     """
     placement = Placement()
     unplaced = [k for k in range(len(shapes)) if k not in to_ref]
+    for u in [u for u in unplaced if len(points[u + 1]) < opts.min_tiepoints]:  # no search where nothing can match
+        placement.notes[u] = f"too little texture to match it: {len(points[u + 1])} interest points"
+        unplaced.remove(u)
     tried: dict[int, set[int]] = {u: set() for u in unplaced}
     while unplaced and to_ref:
         todo = []
         for u in unplaced:
-            todo += [(j, u, prior) for j, prior in _candidates(u, sorted(to_ref), tried[u], shapes, to_ref, ref_to, priors[u])]
+            near = _candidates(u, sorted(to_ref), tried[u], shapes, to_ref, ref_to, priors[u])
+            todo += [(j, u, prior) for j, prior in near]
             tried[u].update(to_ref)
         if not todo:
             break
         stage = f"neighbours-{placement.rounds}"
-        searched = search_offsets(job, f"{stage}-search", [(j, u) for j, u, prior in todo if prior is None], images, opts)
+        blind = [(j, u) for j, u, prior in todo if prior is None]
+        searched = search_offsets(job, f"{stage}-search", blind, images, opts)
         specs, keys = [], []
         for j, u, prior in todo:
             if prior is None and isinstance(searched[j, u], GeocoderError):
@@ -280,7 +307,7 @@ def place_by_neighbours(job: Job, images: list[xr.DataArray], readers: list[Wind
             placement.ties[u] = {j: len(tp) for j, tp in found_u}
             placement.via[u] = max(found_u, key=lambda m: len(m[1]))[0]
         unplaced = [u for u in unplaced if u not in matched]
-    placement.tried = {u: sorted(tried[u]) for u in unplaced}
+    placement.tried = {u: sorted(tried.get(u, ())) for u in range(len(shapes)) if u not in to_ref}
     return placement
 
 
@@ -324,7 +351,8 @@ def footprint_from_model(model, params: np.ndarray, transform, to_ref: Callable,
         ex, ny = pixel_to_world(transform, gx.ravel(), gy.ravel())
         hz = np.zeros(ex.size) if height is None else np.asarray(height(ex, ny), dtype=np.float64)
         xy = model.project(params, np.column_stack([ex, ny, hz]))
-        inside = np.all(np.isfinite(xy), axis=1) & (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1)
+        inside = (np.all(np.isfinite(xy), axis=1) & (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1)
+                  & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1))
         if inside.sum() < 30:
             break
         sx, sy, bx, by = xy[inside, 0], xy[inside, 1], gx.ravel()[inside], gy.ravel()[inside]

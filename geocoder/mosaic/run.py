@@ -582,9 +582,8 @@ def mosaic(
                                                 near_priors)
         for k in range(len(opened)):
             if k in missed and k not in placement.via:
-                tried = sorted(placement.failed.get(k, {}))
-                summary.left_out[str(k)] = f"not found on the reference ({missed[k]}), nor on a placed scene " + (
-                    f"(matched in vain with scene(s) {', '.join(map(str, tried))})" if tried else "(none overlaps it)")
+                summary.left_out[str(k)] = (f"not found on the reference ({missed[k]}), "
+                                            f"nor on a placed scene ({placement.why_not(k)})")
         summary.placed = {str(k): "reference" if k not in missed else
                           f"via scene {placement.via[k]}" if k in placement.via else "not placed"
                           for k in range(len(opened))}
