@@ -10,6 +10,7 @@ that scene has no control and only its neighbours can place it.
 - A strip of three whose reference is blank right of scene 0's first 55 %: scene 1 is placed
   through scene 0 in the first round, scene 2 (which overlaps scene 1 only) through scene 1
   in the second: a chain.
+- Without a cluster: a scene's georeference or RPC prior picks the placed scenes it is matched with.
 """
 
 from __future__ import annotations
@@ -25,8 +26,6 @@ from geocoder.quality.accuracy import mosaic_errors
 from geocoder.scene import write_geotiff
 from geocoder.simulate.block import BlockScene, render
 from geocoder.simulate.texture import synthetic_ortho
-
-pytestmark = pytest.mark.cluster
 
 ORTHO = Affine(2.0, 0.0, 500000.0, 0.0, -2.0, 5800000.0)
 SIZE = 256
@@ -70,6 +69,7 @@ def _figures(ds, scenes: list[BlockScene]) -> tuple[list[tuple[float, float, int
     return out, float(np.sqrt(np.mean(seam**2)))
 
 
+@pytest.mark.cluster
 def test_a_scene_blank_on_the_reference_is_placed_through_its_neighbours(client, tmp_path):
     # blank over scene 3's footprint (and a margin for its rotation): scenes 1 and 2 keep the
     # rest of theirs, scene 0 all but a corner
@@ -87,6 +87,7 @@ def test_a_scene_blank_on_the_reference_is_placed_through_its_neighbours(client,
     assert all(f[0] < 0.1 for f in figures[:3]) and seam < 0.1
 
 
+@pytest.mark.cluster
 def test_a_chain_of_scenes_missing_from_the_reference(client, tmp_path):
     paths = _files(tmp_path, STRIP, (slice(None), slice(64 + int(SIZE * 0.55), None)), seed=31)
     write_geotiff(tmp_path / "flat.tif", np.full((128, 128), 50.0, dtype=np.float32))  # found nowhere
@@ -105,3 +106,21 @@ def test_a_chain_of_scenes_missing_from_the_reference(client, tmp_path):
     assert seam < 0.1
     # nothing of scene 2 is cut off (its footprint is its adjusted model's, not the overlap's extrapolation)
     assert (ds.source.values != 65535).sum() > 0.98 * (SIZE * SIZE + 2 * SIZE * STEP)
+
+
+def test_a_prior_picks_the_neighbours_and_predicts_the_pair():
+    """A scene that carries a georeference or RPCs is matched only with the placed scenes its
+    prior says it overlaps, each pair started from the prior chained through the neighbour."""
+    from geocoder.kernels.polynomial import PolyMap
+    from geocoder.mosaic.placement import _candidates
+
+    shapes = [(200, 200)] * 4
+    offsets = {0: (0.0, 0.0), 1: (150.0, 0.0), 2: (1000.0, 0.0)}  # scene k pixel + offset = reference pixel
+    to_ref = {k: PolyMap.from_affine(np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]])) for k, (dx, dy) in offsets.items()}
+    ref_to = {k: PolyMap.from_affine(np.array([[1.0, 0.0, -dx], [0.0, 1.0, -dy]])) for k, (dx, dy) in offsets.items()}
+    prior = np.array([[1.0, 0.0, -280.0], [0.0, 1.0, -20.0]])  # scene 3 at (280, 20): overlaps scene 1 only
+    near = _candidates(3, [0, 1, 2], set(), shapes, to_ref, ref_to, prior)
+    assert [j for j, _ in near] == [1]
+    np.testing.assert_allclose(near[0][1], [[1.0, 0.0, -130.0], [0.0, 1.0, -20.0]], atol=1e-9)  # scene 1 px -> scene 3 px
+    assert _candidates(3, [0, 1, 2], {1}, shapes, to_ref, ref_to, prior) == []  # tried already
+    assert [j for j, p in _candidates(3, [0, 1, 2], set(), shapes, to_ref, ref_to, None)] == [0, 1, 2]  # blind: all
