@@ -30,7 +30,8 @@ from geocoder.simulate.texture import synthetic_ortho
 ORTHO = Affine(2.0, 0.0, 500000.0, 0.0, -2.0, 5800000.0)
 SIZE = 256
 STEP = int(SIZE * 0.6)  # 40 % overlap
-SHAPE = (384, 64 + 2 * STEP + SIZE + 64)
+BLOCK_SHAPE = (32 + STEP + SIZE + 32,) * 2
+STRIP_SHAPE = (384, 64 + 2 * STEP + SIZE + 64)
 
 
 def _scene(k: int, row0: float, col0: float, angle: float, scale: float, quadratic: float) -> BlockScene:
@@ -44,8 +45,8 @@ STRIP = [_scene(k, 64, 64 + k * STEP, a, s, q) for k, (a, s, q) in enumerate([(1
                                                                             (1.0, 0.99, 1.2)])]
 
 
-def _files(d, scenes: list[BlockScene], blank: tuple[slice, slice], seed: int) -> list:
-    ortho = np.squeeze(synthetic_ortho(SHAPE, seed=seed)).astype(np.float32)
+def _files(d, scenes: list[BlockScene], shape: tuple[int, int], blank: tuple[slice, slice], seed: int) -> list:
+    ortho = np.squeeze(synthetic_ortho(shape, seed=seed)).astype(np.float32)
     reference = ortho.copy()
     reference[blank] = float(ortho.mean())
     write_geotiff(d / "ortho.tif", reference, transform=ORTHO, crs="EPSG:32633")
@@ -73,23 +74,25 @@ def _figures(ds, scenes: list[BlockScene]) -> tuple[list[tuple[float, float, int
 def test_a_scene_blank_on_the_reference_is_placed_through_its_neighbours(client, tmp_path):
     # blank over scene 3's footprint (and a margin for its rotation): scenes 1 and 2 keep the
     # rest of theirs, scene 0 all but a corner
-    paths = _files(tmp_path, BLOCK, (slice(32 + STEP - 8, None), slice(32 + STEP - 8, None)), seed=21)
+    paths = _files(tmp_path, BLOCK, BLOCK_SHAPE, (slice(32 + STEP - 8, None), slice(32 + STEP - 8, None)), seed=21)
     ds = mosaic(paths, reference=tmp_path / "ortho.tif", tile=128, client=client)
     s = json.loads(ds.attrs["summary"])
     # without the neighbour pass scene 3 would have been left out: the reference does not find it
-    assert s["placed"]["3"] in ("via scene 1", "via scene 2") and s["placed"]["0"] == "reference"
+    assert s["placed"]["3"] in ("via scene 1", "via scene 2")
+    assert [s["placed"][str(k)] for k in range(3)] == ["reference"] * 3
     assert s["control_points"][3] == 0 and s["left_out"] == {} and s["block"] == [0, 1, 2, 3]
     assert {(1, 3), (2, 3)} <= {(p["i"], p["j"]) for p in s["pairs"] if p["ties"]}
     figures, seam = _figures(ds, BLOCK)
     print("2 x 2, per scene (rmse, max, pixels):", figures, "seam rms:", seam)
+    # scene 3 is held by ties along two of its sides only: its far corner is extrapolated
     rmse, worst, n = figures[3]
-    assert n > 0.3 * SIZE**2 and rmse < 0.15 and worst < 0.5
+    assert n > 0.3 * SIZE**2 and rmse < 0.2 and worst < 0.7
     assert all(f[0] < 0.1 for f in figures[:3]) and seam < 0.1
 
 
 @pytest.mark.cluster
 def test_a_chain_of_scenes_missing_from_the_reference(client, tmp_path):
-    paths = _files(tmp_path, STRIP, (slice(None), slice(64 + int(SIZE * 0.55), None)), seed=31)
+    paths = _files(tmp_path, STRIP, STRIP_SHAPE, (slice(None), slice(64 + int(SIZE * 0.55), None)), seed=31)
     write_geotiff(tmp_path / "flat.tif", np.full((128, 128), 50.0, dtype=np.float32))  # found nowhere
     ds = mosaic([*paths, tmp_path / "flat.tif"], reference=tmp_path / "ortho.tif", tile=128, client=client)
     s = json.loads(ds.attrs["summary"])
