@@ -34,6 +34,7 @@ PUBLIC: dict[str, str | tuple[str, ...]] = {
     "geocoder": "__all__",  # register, ingest, open_scene, options, errors, Status, RegisterOptions
     "geocoder.cog": "__all__",  # to_cog
     "geocoder.mosaic": "__all__",  # mosaic() and what the package exports with it
+    "geocoder.mosaic.placement": "__all__",  # scenes the reference misses, placed through their neighbours
     "geocoder.pipeline.simulate": ("simulate",),  # the entry point of `geocoder simulate`
     # geocoder.adjust exports nothing itself: its entry points are the file-level run of
     # `geocoder adjust` and the solver and sensor models a notebook calls

@@ -144,6 +144,37 @@ def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_rea
     return tasks
 
 
+def coarse_alignments(job: Job, stage: str, specs: list[PairSpec], images: list[xr.DataArray],
+                      opts: RegisterOptions) -> list:
+    """The coarse alignments of many pairs, one task each, in one tile-parallel stage.
+
+    Parameters
+    ----------
+    job : Job
+        Keeps every task's result (a rerun resumes); the stage is ``<stage>-coarse``.
+    stage : str
+        Name of this batch.
+    specs : list of PairSpec
+        The pairs (names unique within the batch).
+    images : list of xarray.DataArray
+        Ingested scenes, indexed by ``PairSpec.base`` and ``dist``.
+    opts : RegisterOptions
+        ``band``, ``dist_band`` and ``use_georeference`` are used.
+
+    Returns
+    -------
+    list
+        Per pair, its :class:`~geocoder.match.coarse.CoarseAlignment`, or the
+        :class:`~geocoder.errors.GeocoderError` saying why there is none.
+    """
+    band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
+    overviews: dict = {}
+    done = job.run_tiles(f"{stage}-coarse", {
+        s.name: _coarse_task(s, images, band, dband, opts.use_georeference, overviews) for s in specs},
+        phase=f"coarse alignment ({stage})")
+    return [done[s.name] for s in specs]
+
+
 def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.DataArray], readers: list[WindowReader],
                 points: list[InterestPoints], opts: RegisterOptions) -> list:
     """Tie points of many pairs, each round of the registration's matching run once for all pairs.
@@ -170,14 +201,10 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
         :func:`~geocoder.pipeline.register.find_tiepoints` returns them, or the
         :class:`~geocoder.errors.GeocoderError` saying why the pair could not be matched.
     """
-    band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
     pairs = [_Pair(s) for s in specs]
     if not pairs:
         return []
-    overviews: dict = {}
-    coarse = job.run_tiles(f"{stage}-coarse", {
-        p.spec.name: _coarse_task(p.spec, images, band, dband, opts.use_georeference, overviews) for p in pairs},
-        phase=f"coarse alignment ({stage})")
+    coarse = dict(zip([s.name for s in specs], coarse_alignments(job, stage, specs, images, opts)))
     grids = {}
     for p in pairs:
         base, dist = images[p.spec.base], images[p.spec.dist]
@@ -239,4 +266,4 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
     return [p.error if p.error is not None else (p.tiepoints, p.mapping, p.coarse) for p in pairs]
 
 
-__all__ = ["PairSpec", "match_pairs", "scene_points"]
+__all__ = ["PairSpec", "coarse_alignments", "match_pairs", "scene_points"]

@@ -187,6 +187,10 @@ def _markdown(s: MosaicSummary, gains: np.ndarray | None, factor: int, arrow_sca
         *(f"| {p['i']}-{p['j']} | {name[p['i']]} | {name[p['j']]} | {p['ties']} | {p.get('problem', '')} |" for p in s.pairs),
         "",
     ]
+    chained = {k: how for k, how in s.placed.items() if how.startswith("via")}
+    if chained:
+        lines += ["Not found on the reference, placed through a neighbour (no control points of their own):", "",
+                  *(f"- scene {k} ({name[int(k)]}): {how}" for k, how in chained.items()), ""]
     if s.left_out:
         lines += ["Left out of the block:", "", *(f"- scene {k} ({name[int(k)]}): {why}" for k, why in s.left_out.items()), ""]
     lines += [

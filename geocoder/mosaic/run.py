@@ -3,7 +3,9 @@
 1. Every scene and the reference are ingested to Zarr (tile-parallel), inside the job directory.
 2. Every scene is matched against the reference (the registration's coarse alignment,
    Foerstner points and robust correspondence, tile-parallel): its footprint, and control
-   points for the scenes allowed to have them.
+   points for the scenes allowed to have them. A scene not found there is matched against
+   the placed scenes it may overlap, its mapping chained through theirs, round after round
+   while one places a scene (:mod:`geocoder.mosaic.placement`); it has no control points.
 3. Every pair of scenes whose footprints overlap is matched the same way: tie points.
    Steps 2 and 3 run as a few rounds for all pairs at once (:mod:`geocoder.mosaic.matching`):
    the interest points of every scene in one stage, then per batch one stage each for the
@@ -50,6 +52,7 @@ from ..kernels.polynomial import fit_polymap
 from ..multiscales import write_overviews
 from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
+from ..pipeline.coarse import georeference_prior
 from ..pipeline.job import Job, JobRun, fingerprint, input_identity
 from ..pipeline.register import RegisterOptions, _Timer, ingest_all, job_directory
 from ..runtime import dask_client
@@ -62,6 +65,7 @@ from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_
 from .heights import MapDEM, ref_to_scene_prior
 from .layers import field_layers, model_layers, pixel_sigma, scene_uncertainty
 from .matching import PairSpec, match_pairs, scene_points
+from .placement import Placement, footprint_from_model, place_by_neighbours
 from .projection import project_window
 from .radiometry import seam_step, solve_balance
 from .seamplan import plan_seams, read_labels
@@ -127,6 +131,10 @@ class MosaicSummary:
         The job's tile tasks of this run (:meth:`geocoder.pipeline.job.Job.report`): ``resumed``,
         ``tile_tasks``, ``run``, ``skipped`` (finished by an earlier, interrupted run),
         ``recomputed`` and ``recomputed_fraction``; the dense refinement's tiles are not counted.
+    placed : dict
+        Scene index -> how its position was found: ``"reference"`` (matched on the
+        reference), ``"via scene k"`` (not found there; matched on scene ``k``, its mapping
+        chained through that scene's, :mod:`geocoder.mosaic.placement`) or ``"not placed"``.
     """
 
     scenes: list[str]
@@ -150,6 +158,7 @@ class MosaicSummary:
     seam_grey_step: float = float("nan")
     seam_cells_moved: int = 0
     job: dict = field(default_factory=dict)
+    placed: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -162,6 +171,8 @@ class MosaicSummary:
         return [
             f"scenes: {len(self.scenes)} ({kept} in the block); control points per scene {self.control_points}",
             f"overlapping pairs: {len(self.pairs)}, tie points " + ", ".join(f"{p['i']}-{p['j']}: {p['ties']}" for p in self.pairs),
+            *(["placed: " + ", ".join(f"{k} {how}" for k, how in self.placed.items())]
+              if any(how != "reference" for how in self.placed.values()) else []),
             *(f"left out: {self.scenes[int(k)]}: {why}" for k, why in self.left_out.items()),
             "ground points by rays: " + ", ".join(f"{k}: {v}" for k, v in self.rays.items()),
             f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
@@ -420,7 +431,15 @@ def mosaic(
     Parameters
     ----------
     scenes : list of str, PathLike
-        GeoTIFF/COG/Zarr scenes (a georeference is not needed: each is found on the reference).
+        GeoTIFF/COG/Zarr scenes. A georeference is not needed: each is found on the
+        reference, or, where the reference cannot find it (the scene small next to it, the
+        reference untextured, cloudy or nodata there, or the scene partly outside it), on the
+        scenes already placed that it overlaps: tried against those its georeference or RPCs
+        say it overlaps, or against every placed scene if it carries neither. Its mapping to
+        the reference is chained through that scene's (``summary["placed"]``: ``"reference"``,
+        ``"via scene k"`` or ``"not placed"``); it has no control points of its own, the block
+        adjustment carries it by its tie points. A scene found nowhere is reported in
+        ``summary["left_out"]`` and left out.
     reference : str or PathLike
         Orthoimage: the output's CRS and pixel, and the source of control points.
     out : str or PathLike, optional
@@ -585,9 +604,10 @@ def mosaic(
         with timer("control points"):
             found = match_pairs(job, "control", [PairSpec(f"ref-{k}", 0, k + 1, priors[k]) for k in range(len(opened))],
                                 images, image_readers, points, opts)
+            missed = {}
             for k, result in enumerate(found):
                 if isinstance(result, GeocoderError):
-                    summary.left_out[str(k)] = f"not found on the reference ({result})"
+                    missed[k] = result
                     continue
                 tp, mapping, _ = result
                 tp = tp.select(tp.inlier)
@@ -599,6 +619,20 @@ def mosaic(
                     control.append(Matches(-1, k, np.column_stack([ex, ny]), np.column_stack([tp.dist_x, tp.dist_y]),
                                            np.column_stack([tp.sigma_x, tp.sigma_y])))
         summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
+        placement = Placement()
+        if missed and ref_to:
+            with timer("placement by neighbours"):
+                near_priors = [priors[k] if priors[k] is not None or not opts.use_georeference
+                               else georeference_prior(ref, opened[k]) for k in range(len(opened))]
+                placement = place_by_neighbours(job, images, image_readers, points, opts, shapes, to_ref, ref_to,
+                                                near_priors)
+        for k in range(len(opened)):
+            if k in missed and k not in placement.via:
+                summary.left_out[str(k)] = (f"not found on the reference ({missed[k]}), "
+                                            f"nor on a placed scene ({placement.why_not(k)})")
+        summary.placed = {str(k): "reference" if k not in missed else
+                          f"via scene {placement.via[k]}" if k in placement.via else "not placed"
+                          for k in range(len(opened))}
         ties = []
         with timer("tie points"):
             placed = sorted(ref_to)
@@ -639,6 +673,9 @@ def mosaic(
         summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
                           for n in range(len(block))]
         models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
+        for n, k in enumerate(block):
+            if k in placement.via:  # its footprint from its adjusted model, not the overlap's extrapolation
+                to_ref[k], ref_to[k] = footprint_from_model(*models[n], transform, to_ref[k], shapes[k], heights)
         summary.block = list(block)
         nbands = opened[0].sizes["band"]
         gains = np.tile([1.0, 0.0], (len(block), nbands, 1))
