@@ -76,17 +76,28 @@ def test_dense_does_not_depend_on_tiling(shared_data, tmp_path, client):
         assert same >= 0.995
         assert delta.max() <= 0.01
     # unmatched pixels of a line with matches take the polynomial plus the line's mean
-    # residual, within the span of its matches (issue 14): here the turbulence is a shift per line
+    # residual within the span of its matches, and beyond it (the line's ends: the template's
+    # margin) the mean residual near that end (issue 14); here the turbulence is a shift per line
     st, truth = ref.status.values, files.pair
     err = np.hypot(ref.dx.values - truth.dx, ref.dy.values - truth.dy)
     est, inside = st == Status.ESTIMATED, st != Status.OUTSIDE
-    print("estimated", est.mean(), np.sqrt(np.mean(err[est] ** 2)), "all", np.sqrt(np.mean(err[inside] ** 2)))
-    # measured 9.7 % of the base with the lattice + field default (21 % with full growth, which
-    # matched 11 points less of it), at 0.036 px (0.041)
-    assert est.mean() > 0.05
-    assert np.sqrt(np.mean(err[est] ** 2)) <= 0.08 and (err[est] > 1.0).sum() == 0
-    assert np.sqrt(np.mean(err[inside] ** 2)) <= 0.35  # measured 0.274 px; the polynomial there: 0.481
-    assert (ref.sigma_x.values[est] >= np.abs(ref.dx.values - truth.dx)[est].mean()).mean() > 0.5
+    both_est = est & (runs[256].status.values == Status.ESTIMATED)
+    est_delta = np.hypot(runs[256].dx.values - ref.dx.values, runs[256].dy.values - ref.dy.values)[both_est]
+    print("estimated", est.mean(), np.sqrt(np.mean(err[est] ** 2)), "all", np.sqrt(np.mean(err[inside] ** 2)),
+          "> 1 px", (err[inside] > 1.0).mean(), "between tilings", est_delta.max(), np.percentile(est_delta, [99, 99.9, 99.99]),
+          (est_delta > 0.01).sum(), est_delta.size)
+    # measured 17.8 % of the base at 0.049 px, all 0.108 px with 0.46 % > 1 px (before the line
+    # ends: 9.7 % at 0.036 px, all 0.274 px with 2.6 % > 1 px; the polynomial alone: 0.481)
+    assert est.mean() > 0.15
+    assert np.sqrt(np.mean(err[est] ** 2)) <= 0.1 and (err[est] > 1.0).sum() == 0
+    assert np.sqrt(np.mean(err[inside] ** 2)) <= 0.15 and (err[inside] > 1.0).mean() <= 0.005
+    # the estimates follow the matches they average and the sigmas that weigh them, which differ
+    # between the tilings by up to 0.0064 px (above): measured 99.9th percentile 0.016 px, max 0.022,
+    # against the estimates' own error of 0.049 px RMSE
+    assert np.percentile(est_delta, 99.9) <= 0.02 and est_delta.max() <= 0.05
+    ex, ey = (ref.dx.values - truth.dx)[est], (ref.dy.values - truth.dy)[est]
+    for e, s in ((ex, ref.sigma_x.values[est]), (ey, ref.sigma_y.values[est])):
+        assert 0.6 <= np.sqrt(np.mean(e**2)) / np.sqrt(np.mean(s**2)) <= 1.5  # the estimates' sigma is honest
 
 
 def test_dense_lattice_fill_against_truth(shared_data, tmp_path, client):

@@ -276,3 +276,71 @@ def test_line_fits_do_not_depend_on_the_tiling(client, tmp_path):
     b, _ = _shrunk(noisy, sigma, 2, (8, 64), client, tmp_path)
     for x, y in zip(a, b):
         np.testing.assert_allclose(x, y, atol=1e-5)
+
+
+def test_line_ends_take_the_residual_near_the_end_and_do_not_depend_on_the_tiling(client, tmp_path):
+    """Beyond a line's first or last usable pixel (the template's margin, an untextured end),
+    up to max_hole px: the polynomial plus the mean residual of the usable pixels within
+    ``edge`` columns inside that end (its departure from the line's mean shrunk by the matches'
+    noise, negligible here); farther, nothing (issue 14)."""
+    from geocoder import Status
+
+    h, w = 16, 700
+    cols = np.arange(w)
+    rows = np.arange(h)
+    first = 30 + 10 * rows
+    first[3] = 400  # this line's left end is farther than max_hole from column 0
+    last = 660 - 5 * rows
+    trend = 0.002 * (cols[None, :] - 350) + 0.1 * np.sin(rows)[:, None]  # the residual moves along the line
+    usable = (cols[None, :] >= first[:, None]) & (cols[None, :] <= last[:, None])
+    status = np.where(usable, Status.MATCHED, Status.NO_TEXTURE).astype(np.uint8)
+    dx = np.where(usable, trend, np.nan)
+    dy = np.where(usable, -trend, np.nan)
+    sig = np.full((h, w), 1e-4, np.float32)  # matches far more precise than the line's spread: the end's mean kept whole
+    opts = LineOptions(fit_order=-1)
+    want_dx = np.full((h, w), np.nan)
+    reach = np.zeros((h, w), bool)
+    for r in range(h):
+        left = (cols < first[r]) & (cols >= first[r] - opts.max_hole)
+        right = (cols > last[r]) & (cols <= last[r] + opts.max_hole)
+        want_dx[r, left] = trend[r, first[r] : first[r] + opts.edge].mean()
+        want_dx[r, right] = trend[r, last[r] - opts.edge + 1 : last[r] + 1].mean()
+        reach[r] = left | right
+    results = []
+    for chunk in (64, 128, 700):
+        got, _ = _line_field(tmp_path, np.nan_to_num(dx), np.nan_to_num(dy), status, sig, sig, chunk, opts, rows=True)
+        estimated = got["status"] == Status.ESTIMATED
+        assert (estimated == reach).all()
+        np.testing.assert_allclose(got["dx"][reach], want_dx[reach], atol=1e-5)
+        np.testing.assert_allclose(got["dy"][reach], -want_dx[reach], atol=1e-5)
+        assert (got["sigma_x"][reach] > 0).all() and np.isfinite(got["sigma_y"][reach]).all()
+        assert (got["dx"][~usable & ~reach] == 0).all()  # beyond the reach: the (zero) polynomial
+        results.append(got)
+    for other in results[:-1]:
+        for name in ("dx", "dy", "sigma_x", "sigma_y", "status"):
+            np.testing.assert_array_equal(other[name], results[-1][name])
+
+
+def test_line_ends_of_a_line_that_is_one_shift_take_the_line_mean(client, tmp_path):
+    """Where a line is one shift to its matches' noise, its ends take the line's mean, not the
+    noisier mean near the end (the global polynomial already explains the field)."""
+    from geocoder import Status
+
+    h, w = 8, 400
+    cols = np.arange(w)
+    usable = (cols[None, :] >= 40) & (cols[None, :] < 360) & np.ones((h, 1), bool)
+    rng = np.random.default_rng(5)
+    shift = 0.3 * np.arange(h)[:, None]
+    dx = np.where(usable, shift + rng.normal(0, 0.05, (h, w)), 0.0)
+    status = np.where(usable, Status.MATCHED, Status.NO_TEXTURE).astype(np.uint8)
+    sig = np.full((h, w), 0.05, np.float32)
+    got, _ = _line_field(tmp_path, dx, dx, status, sig, sig, 128, LineOptions(fit_order=-1), rows=True)
+    ends = ~usable & (got["status"] == Status.ESTIMATED)
+    assert ends.sum() == h * 80
+    line_mean = np.array([dx[r, usable[r]].mean() for r in range(h)])
+    band_mean = np.array([[dx[r, 40:72].mean(), dx[r, 328:360].mean()] for r in range(h)])
+    off = np.array([[got["dx"][r, 0], got["dx"][r, -1]] for r in range(h)]) - line_mean[:, None]
+    band_off = band_mean - line_mean[:, None]
+    assert np.sqrt(np.mean(off**2)) < 0.3 * np.sqrt(np.mean(band_off**2))
+    for r in range(h):  # one value per end
+        assert np.ptp(got["dx"][r, :40]) == 0 and np.ptp(got["dx"][r, 360:]) == 0

@@ -152,7 +152,8 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     holes = _hole_block(np.stack([dx, dy, px, py, status.astype(np.float32), sx, sy]).astype(np.float32),
                         max_hole=options.max_hole, edge=options.edge)
     t = table[:, :, 0].T  # (rows of the block, ROW_TABLE + FIT_TABLE)
-    dx, dy, sx, sy, status = _estimates(dx, dy, px, py, status, sx, sy, holes, t[:, : len(ROW_TABLE)], np.arange(a, b))
+    dx, dy, sx, sy, status = _estimates(dx, dy, px, py, status, sx, sy, holes, t[:, : len(ROW_TABLE)], np.arange(a, b),
+                                        reach=options.max_hole, band=options.edge)
     if shrink:
         u = line_coordinate(np.arange(a, b), width)
         dx, dy, sx, sy = shrink_block(dx, dy, px, py, status == Status.MATCHED, sx, sy, u, t[:, len(ROW_TABLE):])
@@ -175,14 +176,56 @@ def _hole_block(stack: np.ndarray, *, max_hole: int, edge: int) -> np.ndarray:
     return np.stack([cx, cy, nx, ny, ok]).astype(np.float32)
 
 
-def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np.ndarray):
+#: Fewest usable pixels in the band inside a line's end for an estimate beyond that end.
+MIN_END_COUNT = 8
+
+
+def _line_ends(res: np.ndarray, noise: np.ndarray, usable: np.ndarray, first: np.ndarray, last: np.ndarray,
+               cols: np.ndarray, *, band: int, min_count: int = MIN_END_COUNT) -> tuple[np.ndarray, ...]:
+    """Mean of ``res`` (h, w), its variance about it and the mean of ``noise`` (the matches'
+    variances) over the usable pixels within ``band`` columns inside each end of every row
+    (``first``, ``last``: its first and last usable column), shape (2, h) each (left end,
+    right end); NaN where fewer than ``min_count``.
+    The band is gathered into ``band`` columns of its own, so the sums do not depend on the
+    window (``cols``) they are read from."""
+    h, w = res.shape
+    offsets = np.arange(band)
+    means, variances, noises = [], [], []
+    for start in (np.nan_to_num(first, nan=-1e9) - cols[0], np.nan_to_num(last, nan=-1e9) - cols[0] - band + 1):
+        idx = start.astype(np.int64)[:, None] + offsets[None, :]
+        inside = (idx >= 0) & (idx < w)
+        idx = np.clip(idx, 0, w - 1)
+        m = np.take_along_axis(usable, idx, axis=1) & inside
+        r = np.take_along_axis(res, idx, axis=1)
+        n = m.sum(axis=1)
+        safe = np.maximum(n, 1)
+        mean = np.where(m, r, 0.0).sum(axis=1) / safe
+        var = np.where(m, (r - mean[:, None]) ** 2, 0.0).sum(axis=1) / safe
+        nv = np.where(m, np.take_along_axis(noise, idx, axis=1), 0.0).sum(axis=1) / safe
+        ok = n >= min_count
+        means.append(np.where(ok, mean, np.nan))
+        variances.append(np.where(ok, var, np.nan))
+        noises.append(np.where(ok, nv, np.nan))
+    return np.array(means), np.array(variances), np.array(noises)
+
+
+def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np.ndarray, *, reach: int, band: int):
     """Every unmatched pixel of a corrected row estimated (float32 ``dx, dy, sigma_x, sigma_y``, uint8 ``status``).
 
     Pixels flagged ``NO_TEXTURE`` or ``BLUNDER`` in a hole bounded by usable pixels on both
     sides of their line (``holes``: :func:`_hole_block`) take the polynomial plus the residual
     interpolated between the hole's ends; the others in a row with a correction, between the
-    first and last column its correction may reach, the polynomial plus the row's correction.
-    ``rows`` is the :data:`ROW_TABLE` of the block's rows, ``cols`` the block's columns.
+    first and last column its correction may reach, the polynomial plus the row's correction;
+    those at most ``reach`` px beyond that first or last column (the line's ends: the
+    template's margin, an untextured stretch), the polynomial plus the mean residual of the
+    usable pixels within ``band`` columns inside that end (its departure from the line's mean
+    shrunk as a hole's), its variance their spread about it plus the line's (how far the residual may move between the band and the pixel). The
+    residual near a line's end departs from the line's mean by up to a pixel where the
+    global polynomial fits worst, at the scene's edges: measured on the issue 14 cases,
+    0.5 px RMSE with the line's mean, 0.06-0.1 with the end's. The ends' bands lie inside
+    the columns :func:`line_field` reads (``max_hole + edge + 1`` each side), so the result
+    does not depend on the tiling. ``rows`` is the :data:`ROW_TABLE` of the block's rows,
+    ``cols`` the block's columns.
     """
     def column(values: np.ndarray) -> np.ndarray:
         return np.asarray(values, np.float32)[:, None]
@@ -191,12 +234,20 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np
     within = (cols[None, :] >= column(np.nan_to_num(first, nan=np.inf))) & \
         (cols[None, :] <= column(np.nan_to_num(last, nan=-np.inf)))
     target = (status == Status.NO_TEXTURE) | (status == Status.BLUNDER)
+    usable = (status == Status.MATCHED) | (status == Status.FILLED)
     # a hole needs its ends' noise or its line's spread for a sigma
     known = (np.isfinite(holes[2]) & np.isfinite(holes[3])) | (column(np.isfinite(sgx) & np.isfinite(sgy)) > 0)
     by_hole = target & (holes[4] > 0) & known
     by_line = target & within & ~by_hole
+    c = cols[None, :].astype(np.float64)
+    before = (c < np.nan_to_num(first, nan=-np.inf)[:, None]) & (c >= np.nan_to_num(first, nan=np.inf)[:, None] - reach)
+    after = (c > np.nan_to_num(last, nan=np.inf)[:, None]) & (c <= np.nan_to_num(last, nan=-np.inf)[:, None] + reach)
     out = []
     with np.errstate(invalid="ignore", divide="ignore"):  # inf / inf where a line has no spread: not kept
+        ends = [_line_ends(d - p, sg.astype(np.float64) ** 2, usable, first, last, cols, band=band)
+                for d, p, sg in ((dx, px, sx), (dy, py, sy))]
+        known_end = np.isfinite(ends[0][0]) & np.isfinite(ends[1][0])  # (2, h): left end, right end
+        by_end = target & ~by_hole & ~by_line & ((before & known_end[0][:, None]) | (after & known_end[1][:, None]))
         for k, (d, p, corr, sig, s) in enumerate(((dx, px, cx, sgx, sx), (dy, py, cy, sgy, sy))):
             line = column(np.nan_to_num(corr))
             spread = column(np.nan_to_num(sig, nan=np.inf)) ** 2  # how far the line is from one shift
@@ -205,12 +256,22 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np
             # is far from one shift, none where the ends differ from the mean by their noise only
             keep = np.where(np.isfinite(spread), spread / np.maximum(spread + noise, 1e-12), 1.0)
             value = line + keep * (holes[k] - line)
-            out.append(np.where(by_hole, p + value, np.where(by_line, p + line, d)).astype(np.float32))
+            mean, var, end_noise = (np.where(before, e[0][:, None], e[1][:, None]) for e in ends[k])
+            # the end's departure from the line's mean, shrunk as a hole's: kept where the line is
+            # far from one shift, not where the end differs from the mean by its matches' noise
+            end_keep = np.where(np.isfinite(spread), spread / np.maximum(spread + end_noise, 1e-12), 1.0)
+            end_value = line + end_keep * (mean - line)
+            # the band's scatter, and how far the residual may move from the band to the pixel: at
+            # most what the line departs from one shift (its spread)
+            end_sigma = np.sqrt(var + column(np.nan_to_num(sig)) ** 2)
+            out.append(np.where(by_hole, p + value, np.where(by_line, p + line, np.where(by_end, p + end_value, d)))
+                       .astype(np.float32))
             # the posterior variance of the shrunk departure, keep * noise (= (1 - keep) * spread);
             # with nothing known of the ends' noise (keep = 0), the line's spread
             hole_sigma = np.sqrt(np.where(keep > 0, keep * noise, spread))
-            out.append(np.where(by_hole, hole_sigma, np.where(by_line, column(sig), s)).astype(np.float32))
-    status = np.where(by_hole | by_line, np.uint8(Status.ESTIMATED), status).astype(np.uint8)
+            out.append(np.where(by_hole, hole_sigma, np.where(by_line, column(sig), np.where(by_end, end_sigma, s)))
+                       .astype(np.float32))
+    status = np.where(by_hole | by_line | by_end, np.uint8(Status.ESTIMATED), status).astype(np.uint8)
     return out[0], out[2], out[1], out[3], status
 
 

@@ -44,9 +44,12 @@ class LineOptions:
         Most consecutive rows without their own correction interpolated across.
     max_hole : int
         Longest run of unmatched pixels along a line (px) that takes the interpolation of the
-        residuals at its two ends instead of the line's mean (0: never).
+        residuals at its two ends instead of the line's mean (0: never); also how far beyond
+        the first or last usable pixel of a line (its ends: the template's margin, an
+        untextured stretch) an unmatched pixel takes the mean residual near that end.
     edge : int
-        Usable pixels (at most) averaged at each end of a hole for its residual there.
+        Usable pixels (at most) averaged at each end of a hole for its residual there; the
+        columns inside a line's end whose usable pixels are averaged for the pixels beyond it.
     smooth : int
         Window (px, odd) along the line of the sigma-weighted smoothing of the matches
         (:func:`smooth_matches`; 0: none, the default). Opt-in: with 129 the matched pixels'
