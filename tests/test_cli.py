@@ -143,9 +143,9 @@ def test_tile_from_options_unless_given(tmp_path, client):
     r = run("register", base, dist, "--out", tmp_path / "option.zarr", "--no-dense", *scheduler, env=env)
     assert r.returncode == 0, r.stderr
     assert tile_of(tmp_path / "option.zarr") == (128, 128)  # not the 384 of one 512 tile
-    r = run("register", base, dist, "--out", tmp_path / "flag.zarr", "--no-dense", "--tile", 256, *scheduler, env=env)
+    r = run("ingest", base, tmp_path / "flag.zarr", "--tile", 256, *scheduler, env=env)  # the flag wins (same option)
     assert r.returncode == 0, r.stderr
-    assert tile_of(tmp_path / "flag.zarr") == (256, 256)
+    assert xr.open_zarr(tmp_path / "flag.zarr", consolidated=False).image.data.chunksize == (1, 256, 256)
     r = run("ingest", base, tmp_path / "base.zarr", *scheduler, env=env)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().endswith("384 x 384 px, tile 128")
