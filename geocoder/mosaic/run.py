@@ -58,6 +58,7 @@ from ..status import Status
 from ..tiles import TileGrid
 from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
+from .dense_neighbours import refine_by_neighbours
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
 from .heights import MapDEM, ref_to_scene_prior
 from .layers import field_layers, model_layers, pixel_sigma, scene_uncertainty
@@ -127,6 +128,10 @@ class MosaicSummary:
         The job's tile tasks of this run (:meth:`geocoder.pipeline.job.Job.report`): ``resumed``,
         ``tile_tasks``, ``run``, ``skipped`` (finished by an earlier, interrupted run),
         ``recomputed`` and ``recomputed_fraction``; the dense refinement's tiles are not counted.
+    dense_refined : list of str
+        Per block scene, how ``dense=True`` refined it: ``"reference"`` (a control scene, against
+        the reference), ``"via i, j"`` (against its refined neighbours, scene indices;
+        :mod:`geocoder.mosaic.dense_neighbours`) or ``"not"``. Empty without ``dense``.
     """
 
     scenes: list[str]
@@ -150,6 +155,7 @@ class MosaicSummary:
     seam_grey_step: float = float("nan")
     seam_cells_moved: int = 0
     job: dict = field(default_factory=dict)
+    dense_refined: list[str] = field(default_factory=list)
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -172,6 +178,8 @@ class MosaicSummary:
                f"tie-point mismatch per pair (px) "
                + ", ".join(f"{p['i']}-{p['j']}: {p.get('tie_mismatch_px', float('nan')):.3f}" for p in self.seams)]
               if self.seams else []),
+            *([f"dense refinement per scene: " + ", ".join(f"{self.scenes[k]}: {how}" for k, how in zip(self.block, self.dense_refined))]
+              if self.dense_refined else []),
             f"mosaic: {self.shape[0]} x {self.shape[1]} px",
             *([f"resumed: {self.job['skipped']} of {self.job['tile_tasks']} tile tasks finished earlier, "
                f"at most {self.job['recomputed']} ({self.job['recomputed_fraction']:.1%}) computed again"]
@@ -462,8 +470,12 @@ def mosaic(
         (the registration's dense stage, seeded by its control points, predicted by its
         adjusted model); where a pixel is matched or filled, the mosaic takes it from there
         instead of from the model (the line-to-line turbulence of airborne scanners, which
-        no polynomial follows). The fields are kept in the store (group ``dense/<n>``);
-        scenes without control keep their model.
+        no polynomial follows). Then, in rounds, every scene without control (or whose
+        refinement failed) that shares tie points with refined scenes is matched the same way
+        against those neighbours, brought onto the reference grid through their refined
+        positions (:mod:`geocoder.mosaic.dense_neighbours`); the summary's ``dense_refined``
+        says how each scene was refined. The fields are kept in the store (group
+        ``dense/<n>``); scenes connected to no refined scene keep their model.
     model : {"polynomial", "linescanner", "rpc"}
         Every scene's model in the block adjustment and the output: a polynomial of map
         coordinates of ``order``; the line scanner the scene carries (GeoTIFF tag
@@ -667,6 +679,17 @@ def mosaic(
                     todo, "dense refinement (scenes)", threads)
                 for n, f in zip(todo, done):
                     fields[n] = f
+                # then the scenes without control (or whose refinement failed), against their refined neighbours
+                via = refine_by_neighbours(
+                    job, key, store, ref, transform, [readers[k] for k in block], models, [shapes[k] for k in block],
+                    [to_ref[k] for k in block], fields, gains,
+                    [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
+                    [(index[p["i"]], index[p["j"]]) for p in summary.pairs
+                     if p["i"] in index and p["j"] in index and p["ties"] > 0],
+                    opts, lambda fn, items, phase: _concurrently(fn, items, phase, threads), heights)
+                summary.dense_refined = [
+                    "via " + ", ".join(str(block[k]) for k in via[n]) if n in via else "reference" if fields[n] else "not"
+                    for n in range(len(block))]
         origin = tuple(int(round(v)) for v in ~transform * (out_transform.c, out_transform.f))  # output (0, 0) in reference pixels
         boxes = np.array([_footprint_box(to_ref[k], shapes[k], origin) for k in block])
         summary.footprints = [footprint_outline(_shifted(to_ref[k], origin), shapes[k]) for k in block]
