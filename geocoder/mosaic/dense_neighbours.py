@@ -36,8 +36,13 @@ from .projection import project_window
 __all__ = ["neighbour_composite", "refinement_rounds", "reference_positions", "tie_seeds"]
 
 
-def refinement_rounds(n_scenes: int, refined: set[int], pairs: list[tuple[int, int]]) -> list[list[tuple[int, list[int]]]]:
+def refinement_rounds(n_scenes: int, refined: set[int], ties: dict[tuple[int, int], int]) -> list[list[tuple[int, list[int]]]]:
     """The order of the neighbour refinement: rounds of ``(scene, refined neighbours)``.
+
+    A scene waits for a better neighbour: it is refined in a round when its tie points with
+    the refined scenes are at least as many as with any single scene not refined yet (a strip
+    that barely overlaps a refined strip waits for the strip beside it). When no scene
+    qualifies, those with the most tie points to refined scenes go.
 
     Parameters
     ----------
@@ -45,8 +50,8 @@ def refinement_rounds(n_scenes: int, refined: set[int], pairs: list[tuple[int, i
         Scenes of the block (indices ``0 .. n_scenes - 1``).
     refined : set of int
         Scenes refined before (against the reference).
-    pairs : list of tuple of int
-        Pairs of scenes that share tie points.
+    ties : dict
+        ``(i, j) -> number of tie points`` of every pair of scenes that shares some.
 
     Returns
     -------
@@ -54,17 +59,23 @@ def refinement_rounds(n_scenes: int, refined: set[int], pairs: list[tuple[int, i
         Per round, every scene refined in it (ascending) with its neighbours refined in
         earlier rounds (ascending). Scenes connected to no refined scene are in no round.
     """
-    near: dict[int, set[int]] = {k: set() for k in range(n_scenes)}
-    for i, j in pairs:
-        near[i].add(j)
-        near[j].add(i)
+    near: dict[int, dict[int, int]] = {k: {} for k in range(n_scenes)}
+    for (i, j), count in ties.items():
+        if count > 0:
+            near[i][j] = near[i].get(j, 0) + count
+            near[j][i] = near[j].get(i, 0) + count
     done, rounds = set(refined), []
     while True:
-        this = [(k, sorted(near[k] & done)) for k in range(n_scenes) if k not in done and near[k] & done]
-        if not this:
+        open_ = {k: sum(c for m, c in near[k].items() if m in done) for k in range(n_scenes)
+                 if k not in done and set(near[k]) & done}
+        if not open_:
             return rounds
-        rounds.append(this)
-        done |= {k for k, _ in this}
+        ready = [k for k, c in open_.items() if c >= max((c2 for m, c2 in near[k].items() if m not in done), default=0)]
+        if not ready:
+            best = max(open_.values())
+            ready = [k for k, c in open_.items() if c == best]
+        rounds.append([(k, sorted(set(near[k]) & done)) for k in sorted(ready)])
+        done |= set(ready)
 
 
 def _field_at(located: dict, rx: np.ndarray, ry: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -277,7 +288,7 @@ COMPOSITE_MARGIN = 32
 
 def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine, readers: list, models: list,
                          shapes: list, to_ref: list, fields: list, gains: np.ndarray, ties: list[Matches],
-                         pairs: list[tuple[int, int]], opts, concurrently, dem=None) -> dict[int, list[int]]:
+                         opts, concurrently, dem=None) -> dict[int, list[int]]:
     """Refine the scenes without a field densely against their refined neighbours, in rounds.
 
     Parameters
@@ -300,8 +311,6 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
         Radiometric gain and offset per block scene and band.
     ties : list of Matches
         Tie points between block scenes (block indices).
-    pairs : list of tuple of int
-        Block scenes that share tie points.
     opts : RegisterOptions
         The mosaic's options (band, tile).
     concurrently : callable
@@ -336,7 +345,10 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
         return _refine(job, key, store, n, ref, base, readers[n], models[n], seeds, to_ref[n], shapes[n], transform,
                        opts, dem)
 
-    rounds = refinement_rounds(len(models), {n for n, f in enumerate(fields) if f is not None}, pairs)
+    counts: dict[tuple[int, int], int] = {}
+    for t in ties:
+        counts[(t.i, t.j)] = counts.get((t.i, t.j), 0) + len(t)
+    rounds = refinement_rounds(len(models), {n for n, f in enumerate(fields) if f is not None}, counts)
     for r, this in enumerate(rounds):
         this = [(n, [k for k in near if fields[k] is not None]) for n, near in this]
         this = [(n, near) for n, near in this if near]

@@ -178,7 +178,7 @@ class MosaicSummary:
                f"tie-point mismatch per pair (px) "
                + ", ".join(f"{p['i']}-{p['j']}: {p.get('tie_mismatch_px', float('nan')):.3f}" for p in self.seams)]
               if self.seams else []),
-            *([f"dense refinement per scene: " + ", ".join(f"{self.scenes[k]}: {how}" for k, how in zip(self.block, self.dense_refined))]
+            *(["dense refinement per scene: " + ", ".join(f"{self.scenes[k]}: {how}" for k, how in zip(self.block, self.dense_refined))]
               if self.dense_refined else []),
             f"mosaic: {self.shape[0]} x {self.shape[1]} px",
             *([f"resumed: {self.job['skipped']} of {self.job['tile_tasks']} tile tasks finished earlier, "
@@ -684,8 +684,6 @@ def mosaic(
                     job, key, store, ref, transform, [readers[k] for k in block], models, [shapes[k] for k in block],
                     [to_ref[k] for k in block], fields, gains,
                     [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
-                    [(index[p["i"]], index[p["j"]]) for p in summary.pairs
-                     if p["i"] in index and p["j"] in index and p["ties"] > 0],
                     opts, lambda fn, items, phase: _concurrently(fn, items, phase, threads), heights)
                 summary.dense_refined = [
                     "via " + ", ".join(str(block[k]) for k in via[n]) if n in via else "reference" if fields[n] else "not"
