@@ -4,17 +4,22 @@
 (:func:`geocoder.mosaic.run._refine`). A scene without control has only its adjusted model,
 which cannot follow an airborne strip's scan-line turbulence. Here such a scene is matched
 densely against a *neighbour composite*: its already-refined neighbours brought onto the
-reference's pixel grid through their refined positions (dense field where matched or filled,
-adjusted model elsewhere), radiometrically balanced, each pixel from the neighbour that sees it
-nearest its centre. The dense stage then runs exactly as against the reference (same grid,
+reference's pixel grid through their dense fields, radiometrically balanced, each pixel from
+the neighbour that sees it nearest its centre among those whose field matched or filled it
+(where a neighbour has only its model, its turbulence is in it: the scene keeps its own model
+there). The dense stage then runs exactly as against the reference (same grid,
 predicted by the scene's adjusted model), seeded by the scene's tie points with those
 neighbours, their neighbour side mapped onto the reference grid.
 
-Order (:func:`refinement_rounds`): the control scenes, then rounds; in each round every scene
-not yet refined that shares tie points with a refined scene is refined against all of them.
+Order (:func:`refinement_rounds`): the control scenes, then rounds; in each round the scenes
+not yet refined that share more tie points with the refined scenes than with any single
+unrefined one are refined against all their refined neighbours.
 Each composite is written one task per reference tile (only the tiles around the scene's
 footprint) into the job directory, resumable (a sub-job per scene); a worker holds one tile's
 windows, whatever the scene's size.
+
+The field's ``sigma_x``, ``sigma_y`` (the mosaic's sigma layers at a matched pixel) are the
+match's against the composite: the neighbour's own error is not added to them.
 """
 
 from __future__ import annotations
@@ -206,7 +211,10 @@ def tie_seeds(n: int, neighbours: list[int], ties: list[Matches], to_ref: list, 
 def _composite_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
                     shapes: list, fields: list, gains: np.ndarray, dem=None, method: str = "bilinear") -> None:
     """Write one reference tile of the neighbour composite: each pixel from the neighbour
-    that sees it nearest its centre, at its refined position, balanced."""
+    that sees it nearest its centre among those whose dense field matched or filled it, at
+    that position, balanced. A neighbour's model-only pixels are left out: they carry its
+    turbulence, which the scene matched against them would inherit."""
+    from .layers import field_layers
     from .run import _scene_xy
 
     r0, r1, c0, c1 = window
@@ -220,7 +228,8 @@ def _composite_tile(store: str, window: tuple[int, int, int, int], transform: Af
     for (model, params), reader, shape, located, gain in zip(models, readers, shapes, fields, gains):
         x, y = _scene_xy(model, params, transform, window, located, (0, 0), heights)
         s = centre_score(x, y, shape)
-        take = (s <= 1.0) & (s < best)
+        codes = field_layers(located, window, (0, 0))[0]
+        take = (s <= 1.0) & (s < best) & ((codes == Status.MATCHED) | (codes == Status.FILLED))
         if not take.any():
             continue
         v = gain[:, 0, None, None] * reader.sample(x, y, method=method) + gain[:, 1, None, None]
@@ -259,7 +268,8 @@ def neighbour_composite(job: Job, name: str, ref_shape: tuple[int, int], chunks:
     Returns
     -------
     WindowReader
-        Over the composite's ``image (band, y, x)``, float32, NaN where no neighbour has data.
+        Over the composite's ``image (band, y, x)``, float32, NaN where no neighbour's field
+        matched or filled the pixel.
     """
     store = job.file(f"{name}.zarr")
     edges_r, edges_c = np.r_[0, np.cumsum(chunks[0])], np.r_[0, np.cumsum(chunks[1])]
