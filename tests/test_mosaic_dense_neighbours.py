@@ -83,4 +83,6 @@ def test_strips_without_control_follow_their_turbulence_via_neighbours(client, t
     assert errors[True][1] < 0.2 < errors[False][1]
     # the layers: a matched pixel's sigma is its match's, finite; the strip's model pixels keep the model's status
     assert np.isfinite(sigma_x[strip1 & (status == Status.MATCHED)]).all()
+    ratio = rms(errors[True][0], matched) / float(np.sqrt(np.mean(sigma_x[matched].astype(np.float64) ** 2)))
+    print(f"strip 1 matched: true RMSE / RMS sigma_x {ratio:.2f}")
     assert set(np.unique(status[strip1])) <= {Status.MATCHED, Status.FILLED, Status.NO_TEXTURE, Status.BLUNDER, Status.MODEL}

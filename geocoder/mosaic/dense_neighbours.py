@@ -38,7 +38,7 @@ from .block import Matches
 from .compose import centre_score
 from .projection import project_window
 
-__all__ = ["neighbour_composite", "refinement_rounds", "reference_positions", "tie_seeds"]
+__all__ = ["neighbour_composite", "refine_by_neighbours", "refinement_rounds", "reference_positions", "tie_seeds"]
 
 
 def refinement_rounds(n_scenes: int, refined: set[int], ties: dict[tuple[int, int], int]) -> list[list[tuple[int, list[int]]]]:
@@ -298,7 +298,7 @@ COMPOSITE_MARGIN = 32
 
 def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine, readers: list, models: list,
                          shapes: list, to_ref: list, fields: list, gains: np.ndarray, ties: list[Matches],
-                         opts, concurrently, dem=None) -> dict[int, list[int]]:
+                         opts, concurrently, dem=None, passes: int = 2) -> dict[int, list[int]]:
     """Refine the scenes without a field densely against their refined neighbours, in rounds.
 
     Parameters
@@ -327,11 +327,18 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
         ``concurrently(fn, items, phase) -> results``: runs the scenes of one round at once.
     dem : callable, optional
         ``dem(E, N) -> h``.
+    passes : int
+        Passes over the rounds. The first refines each scene against the neighbours refined in
+        earlier rounds; every further one again, in the same order, against all its refined
+        neighbours but those of its own round (a field is not read while it is rewritten), so
+        that a scene refined early also gets the neighbours refined after it (group
+        ``dense/<n>-<pass>``); skipped where those neighbours and their fields are the ones
+        it was matched against.
 
     Returns
     -------
     dict
-        Block index of every scene refined here -> the neighbours it was refined against.
+        Block index of every scene refined here -> the neighbours it was last refined against.
     """
     from .run import _footprint_box, _refine
 
@@ -340,8 +347,8 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
     via: dict[int, list[int]] = {}
 
     def one(item):
-        n, near = item
-        sub = Job(job.file("dense", f"neighbours-{n}"), key)
+        n, near, tag = item
+        sub = Job(job.file("dense", f"neighbours-{n}{tag}"), key)
         try:
             r0, r1, c0, c1 = _footprint_box(to_ref[n], shapes[n], (0, 0), margin=COMPOSITE_MARGIN)
             base = neighbour_composite(sub, "composite", ref_shape, chunks, (r0, r1, c0, c1), transform,
@@ -353,17 +360,33 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
         if len(seeds) == 0:
             return None
         return _refine(job, key, store, n, ref, base, readers[n], models[n], seeds, to_ref[n], shapes[n], transform,
-                       opts, dem)
+                       opts, dem, tag)
 
     counts: dict[tuple[int, int], int] = {}
     for t in ties:
         counts[(t.i, t.j)] = counts.get((t.i, t.j), 0) + len(t)
     rounds = refinement_rounds(len(models), {n for n, f in enumerate(fields) if f is not None}, counts)
-    for r, this in enumerate(rounds):
-        this = [(n, [k for k in near if fields[k] is not None]) for n, near in this]
-        this = [(n, near) for n, near in this if near]
-        for (n, near), f in zip(this, concurrently(one, this, f"dense refinement via neighbours (round {r + 1})")):
-            if f is not None:
-                fields[n] = f
-                via[n] = near
+    near_all: dict[int, set[int]] = {}
+    for i, j in counts:
+        near_all.setdefault(i, set()).add(j)
+        near_all.setdefault(j, set()).add(i)
+    version = [0] * len(fields)  # how often each scene's field was replaced
+    used: dict[int, list[tuple[int, int]]] = {}  # the neighbours' versions a scene's field was matched against
+    for p in range(passes):
+        for r, this in enumerate(rounds):
+            if p == 0:
+                items = [(n, [k for k in near if fields[k] is not None], "") for n, near in this]
+            else:
+                same = {n for n, _ in this}
+                items = [(n, sorted(k for k in near_all[n] - same if fields[k] is not None), f"-{p + 1}")
+                         for n, _ in this if n in via]
+                items = [item for item in items if [(k, version[k]) for k in item[1]] != used[item[0]]]
+            items = [item for item in items if item[1]]
+            phase = f"dense refinement via neighbours (pass {p + 1}, round {r + 1})"
+            for (n, near, _), f in zip(items, concurrently(one, items, phase)):
+                if f is not None:
+                    fields[n] = f
+                    version[n] += 1
+                    used[n] = [(k, version[k]) for k in near]
+                    via[n] = near
     return via

@@ -417,7 +417,7 @@ def mosaic(
     scheduler: str | None = None,
     overwrite: bool = False,
     cog: str | os.PathLike | None = None,
-    dense: bool = False,
+    dense: bool | str = False,
     model: str = "polynomial",
     dem: str | os.PathLike | None = None,
     report: str | os.PathLike | None = None,
@@ -475,7 +475,8 @@ def mosaic(
         against those neighbours, brought onto the reference grid through their refined
         positions (:mod:`geocoder.mosaic.dense_neighbours`); the summary's ``dense_refined``
         says how each scene was refined. The fields are kept in the store (group
-        ``dense/<n>``); scenes connected to no refined scene keep their model.
+        ``dense/<n>``); scenes connected to no refined scene keep their model. ``"control"``:
+        only the control scenes are refined.
     model : {"polynomial", "linescanner", "rpc"}
         Every scene's model in the block adjustment and the output: a polynomial of map
         coordinates of ``order``; the line scanner the scene carries (GeoTIFF tag
@@ -524,6 +525,8 @@ def mosaic(
         raise ValueError(f"seams must be 'least-cost' or 'centre', got {seams!r}")
     if model not in KINDS:
         raise ValueError(f"model must be one of {', '.join(KINDS)}, got {model!r}")
+    if dense not in (False, True, "control"):
+        raise ValueError(f"dense must be True, False or 'control', got {dense!r}")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
     if output_tile is None:
         output_tile = tile
@@ -680,7 +683,7 @@ def mosaic(
                 for n, f in zip(todo, done):
                     fields[n] = f
                 # then the scenes without control (or whose refinement failed), against their refined neighbours
-                via = refine_by_neighbours(
+                via = {} if dense == "control" else refine_by_neighbours(
                     job, key, store, ref, transform, [readers[k] for k in block], models, [shapes[k] for k in block],
                     [to_ref[k] for k in block], fields, gains,
                     [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
@@ -717,7 +720,7 @@ def mosaic(
 
         zarr.open_group(store, mode="r+").attrs.update({
             **_attrs(summary, block, models, gains),
-            "dense_fields": json.dumps([None if f is None else {"group": f"dense/{n}", "row0": f["row0"], "col0": f["col0"],
+            "dense_fields": json.dumps([None if f is None else {"group": f["group"], "row0": f["row0"], "col0": f["col0"],
                                                                 "shape": list(f["shape"])} for n, f in enumerate(fields)]),
             "reference_origin": json.dumps(list(origin)),
         })
@@ -801,14 +804,15 @@ def _footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], marg
 
 
 def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, model, tp, to_ref, shape,
-            transform: Affine, opts: RegisterOptions, dem=None) -> dict | None:
-    """Dense field of block scene ``n`` against the reference, written to group ``dense/<n>`` of
-    ``store`` on the reference tiles its footprint touches; its location (see :func:`_scene_xy`)."""
+            transform: Affine, opts: RegisterOptions, dem=None, tag: str = "") -> dict | None:
+    """Dense field of block scene ``n`` against the reference (or ``ref_reader``'s image on its
+    grid), written to group ``dense/<n><tag>`` of ``store`` on the reference tiles its footprint
+    touches; its location (see :func:`_scene_xy`)."""
     from ..pipeline.dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
     from ..pipeline.resample import polynomial_displacement
     from ..quality.postfilter import PostFilterOptions
 
-    sub = Job(job.file("dense", f"scene-{n}"), key)
+    sub = Job(job.file("dense", f"scene-{n}{tag}"), key)
     try:
         h, w = shape
         # reference pixel -> scene pixel as the adjusted model says, fitted over the footprint
@@ -832,7 +836,7 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
         r0, r1, c0, c1 = int(edges_r[ia]), int(edges_r[ib]), int(edges_c[ja]), int(edges_c[jb])
         if r0 >= r1 or c0 >= c1:
             return None
-        group = f"dense/{n}"
+        group = f"dense/{n}{tag}"
         if not sub.done("field"):
             rows = (tuple(grid.rows[ia:ib]), (c1 - c0,))  # whole rows of the footprint: carried along them
             parts = [a[r0:r1, c0:c1].rechunk(rows) for a in (field_["dx"], field_["dy"], field_["status"], pdx, pdy)]
@@ -852,7 +856,7 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
                        "sigma": "sigma_x, sigma_y: standard deviations of the matched pixels' dx, dy (NaN elsewhere)"})
             part.to_zarr(store, group=group, mode="w", zarr_format=3, consolidated=False)
             sub.save("field")
-        return {"store": f"{store}/{group}", "row0": r0, "col0": c0, "shape": (r1 - r0, c1 - c0)}
+        return {"store": f"{store}/{group}", "group": group, "row0": r0, "col0": c0, "shape": (r1 - r0, c1 - c0)}
     finally:
         sub.release()
 
