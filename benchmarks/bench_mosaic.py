@@ -23,7 +23,18 @@ mosaic's summary), geometric mismatch along the seams against the truth (RMS and
 ``|T_a(model_a(p)) - T_b(model_b(p))|`` at every seam pixel), the mosaic's geometric RMSE
 against the truth, its grey-value RMSE against the ortho, wall time.
 
+A third table (``--turbulence``) takes airborne strips instead: the same 3 x 3 layout
+(``--turbulence-size`` px scenes), every scene's scan lines shifted by roll and pitch (up to
+1.5 px, changing over tens of lines, :class:`~geocoder.simulate.block.BlockScene`), which no
+polynomial follows. Rows: control on the 4 corner scenes without and with dense refinement
+(``dense=True``: the corners against the reference, the others, in rounds, against their
+refined neighbours), and control on every scene with dense refinement (every scene against
+the reference). Columns: RMSE and max against the truth at every valid output pixel (output
+px; at the positions the mosaic sampled, dense fields included), RMS disagreement of
+neighbouring scenes wherever both see a pixel, how each scene was refined, wall time.
+
 Run:  python benchmarks/bench_mosaic.py [--size 384] [--workers 2] [--seams-only]
+      python benchmarks/bench_mosaic.py --turbulence [--turbulence-size 256]
 """
 
 from __future__ import annotations
@@ -52,7 +63,12 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=384)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seams-only", action="store_true", help="only the seam table")
+    ap.add_argument("--turbulence", action="store_true", help="only the table of turbulent strips")
+    ap.add_argument("--turbulence-size", type=int, default=256)
     args = ap.parse_args()
+    if args.turbulence:
+        turbulent_strips(args.turbulence_size, args.workers)
+        return
     size = args.size
     work = Path(tempfile.mkdtemp(prefix="bench-mosaic-"))
     with rasterio.open(S2) as src:
@@ -147,6 +163,52 @@ def main() -> None:
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for name, rmse, mx, cov, seam, b, a, sec in rows:
         print(f"| {name} | {rmse:.3f} | {mx:.3f} | {cov} | {seam:.3f} | {b:.1f} | {a:.1f} | {sec:.1f} |")
+
+
+def turbulent_strips(size: int, workers: int) -> None:
+    """The table of turbulent airborne strips, sparse control, without and with dense refinement."""
+    from dataclasses import replace
+
+    from geocoder.mosaic import scene_positions
+
+    work = Path(tempfile.mkdtemp(prefix="bench-mosaic-turbulence-"))
+    with rasterio.open(S2) as src:
+        full = src.read(1).astype(np.float32)
+        t = src.transform
+    r0, c0 = 300, 900
+    scenes = [replace(s, turbulence_px=1.5, turbulence_seed=k)
+              for k, s in enumerate(block_layout(3, 3, size=size, overlap=(0.2, 0.6), origin=(40.0, 40.0), seed=5))]
+    extent = int(max(max(s.row0, s.col0) for s in scenes) + 1.2 * size + 80)
+    ortho = full[r0 : r0 + extent, c0 : c0 + extent]
+    transform = t * rasterio.Affine.translation(c0, r0)
+    write_geotiff(work / "ortho.tif", ortho, transform=transform, crs="EPSG:32633")
+    paths = []
+    for k, s in enumerate(scenes):
+        paths.append(work / f"strip{k}.tif")
+        write_geotiff(paths[-1], render(ortho, s, seed=k))
+    corners = [0, 2, 6, 8]
+    rows = []
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, Client(cl) as c:
+        for name, control, dense in (("corner control, adjusted models", corners, False),
+                                     ("corner control, dense refinement", corners, True),
+                                     ("control on every scene, dense refinement", None, True)):
+            out = work / f"{len(rows)}.zarr"
+            t0 = time.perf_counter()
+            ds = mosaic(paths, reference=work / "ortho.tif", out=out, tile=256, client=c, control_scenes=control, dense=dense)
+            sec = time.perf_counter() - t0
+            ks = [int(p.rsplit("strip", 1)[-1].split(".")[0]) for p in json.loads(ds.attrs["scenes"])]
+            own, seam = mosaic_errors(ds, [scenes[k].to_ortho for k in ks], [(size, size)] * len(ks), transform,
+                                      positions=scene_positions(ds, out))
+            own = own[np.isfinite(own)]
+            how = json.loads(ds.attrs["summary"]).get("dense_refined") or ["-"] * len(ks)
+            rows.append((name, float(np.sqrt(np.mean(own**2))), float(own.max()), own.size,
+                         float(np.sqrt(np.mean(seam**2))), "; ".join(f"{k}: {h}" for k, h in zip(ks, how)), sec))
+    print(f"\nTurbulent strips: 3 x 3 block of {size}² airborne scenes (scan-line turbulence up to 1.5 px) over a "
+          f"{extent}² Sentinel-2 crop, 20 % overlap, 60 % sidelap; {workers} workers")
+    print("| configuration | RMSE px | max px | valid px | seam RMS px | refined (scene: how) | wall s |")
+    print("|---|---:|---:|---:|---:|---|---:|")
+    for name, rmse, mx, n, seam, how, sec in rows:
+        print(f"| {name} | {rmse:.3f} | {mx:.3f} | {n} | {seam:.3f} | {how} | {sec:.1f} |")
 
 
 if __name__ == "__main__":

@@ -302,7 +302,8 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
               help="Radiometric balance: a gain and offset per scene and band from the grey values at control and tie points.")
 @click.option("--cog", default=None, help="Also write the mosaic as a Cloud-Optimized GeoTIFF (tile-parallel, with overviews).")
 @click.option("--dense/--no-dense", default=False, show_default=True,
-              help="Refine every control scene pixel by pixel against the reference (scan-line turbulence).")
+              help="Refine every control scene pixel by pixel against the reference (scan-line turbulence), "
+                   "then the other scenes against their refined neighbours.")
 @click.option("--report", default=None,
               help="Also write a report directory: report.md with the overlap graph, adjustment and seams, plus figures.")
 @click.option("--model", "model", default="polynomial", show_default=True,

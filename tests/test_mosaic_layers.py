@@ -1,7 +1,8 @@
 """The mosaic's per-pixel layers ``status``, ``sigma_x``, ``sigma_y`` against the simulator's truth.
 
 The block is test_mosaic's pair of airborne strips with scan-line turbulence, refined densely;
-control on the first strip only, so the second is placed by tie points and keeps its model: the
+control on the first strip only, so the second is placed by tie points and, with
+``dense="control"`` (no refinement against the neighbours), keeps its model: the
 mosaic has pixels from a dense field (matched and filled), from a model only, and from no scene.
 The error of an output pixel is ``T_k(position in scene k) - p`` per axis (output pixels).
 """
@@ -44,7 +45,7 @@ def strips(tmp_path_factory, client):
     runs = {}
     for t in OUTPUT_TILES:
         out = d / f"m{t}.zarr"
-        runs[t] = (mosaic(paths, reference=d / "ortho.tif", out=out, tile=128, output_tile=t, client=client, dense=True,
+        runs[t] = (mosaic(paths, reference=d / "ortho.tif", out=out, tile=128, output_tile=t, client=client, dense="control",
                           control_scenes=[0]), out)
     return runs
 

@@ -61,6 +61,7 @@ from ..status import Status
 from ..tiles import TileGrid
 from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
+from .dense_neighbours import refine_by_neighbours
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
 from .heights import MapDEM, ref_to_scene_prior
 from .layers import field_layers, model_layers, pixel_sigma, scene_uncertainty
@@ -135,6 +136,10 @@ class MosaicSummary:
         Scene index -> how its position was found: ``"reference"`` (matched on the
         reference), ``"via scene k"`` (not found there; matched on scene ``k``, its mapping
         chained through that scene's, :mod:`geocoder.mosaic.placement`) or ``"not placed"``.
+    dense_refined : list of str
+        Per block scene, how ``dense=True`` refined it: ``"reference"`` (a control scene, against
+        the reference), ``"via i, j"`` (against its refined neighbours, scene indices;
+        :mod:`geocoder.mosaic.dense_neighbours`) or ``"not"``. Empty without ``dense``.
     """
 
     scenes: list[str]
@@ -159,6 +164,7 @@ class MosaicSummary:
     seam_cells_moved: int = 0
     job: dict = field(default_factory=dict)
     placed: dict = field(default_factory=dict)
+    dense_refined: list[str] = field(default_factory=list)
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -183,6 +189,8 @@ class MosaicSummary:
                f"tie-point mismatch per pair (px) "
                + ", ".join(f"{p['i']}-{p['j']}: {p.get('tie_mismatch_px', float('nan')):.3f}" for p in self.seams)]
               if self.seams else []),
+            *(["dense refinement per scene: " + ", ".join(f"{self.scenes[k]}: {how}" for k, how in zip(self.block, self.dense_refined))]
+              if self.dense_refined else []),
             f"mosaic: {self.shape[0]} x {self.shape[1]} px",
             *([f"resumed: {self.job['skipped']} of {self.job['tile_tasks']} tile tasks finished earlier, "
                f"at most {self.job['recomputed']} ({self.job['recomputed_fraction']:.1%}) computed again"]
@@ -420,7 +428,7 @@ def mosaic(
     scheduler: str | None = None,
     overwrite: bool = False,
     cog: str | os.PathLike | None = None,
-    dense: bool = False,
+    dense: bool | str = False,
     model: str = "polynomial",
     dem: str | os.PathLike | None = None,
     report: str | os.PathLike | None = None,
@@ -481,8 +489,13 @@ def mosaic(
         (the registration's dense stage, seeded by its control points, predicted by its
         adjusted model); where a pixel is matched or filled, the mosaic takes it from there
         instead of from the model (the line-to-line turbulence of airborne scanners, which
-        no polynomial follows). The fields are kept in the store (group ``dense/<n>``);
-        scenes without control keep their model.
+        no polynomial follows). Then, in rounds, every scene without control (or whose
+        refinement failed) that shares tie points with refined scenes is matched the same way
+        against those neighbours, brought onto the reference grid through their refined
+        positions (:mod:`geocoder.mosaic.dense_neighbours`); the summary's ``dense_refined``
+        says how each scene was refined. The fields are kept in the store (group
+        ``dense/<n>``); scenes connected to no refined scene keep their model. ``"control"``:
+        only the control scenes are refined.
     model : {"polynomial", "linescanner", "rpc"}
         Every scene's model in the block adjustment and the output: a polynomial of map
         coordinates of ``order``; the line scanner the scene carries (GeoTIFF tag
@@ -531,6 +544,8 @@ def mosaic(
         raise ValueError(f"seams must be 'least-cost' or 'centre', got {seams!r}")
     if model not in KINDS:
         raise ValueError(f"model must be one of {', '.join(KINDS)}, got {model!r}")
+    if dense not in (False, True, "control"):
+        raise ValueError(f"dense must be True, False or 'control', got {dense!r}")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
     if output_tile is None:
         output_tile = tile
@@ -704,6 +719,15 @@ def mosaic(
                     todo, "dense refinement (scenes)", threads)
                 for n, f in zip(todo, done):
                     fields[n] = f
+                # then the scenes without control (or whose refinement failed), against their refined neighbours
+                via = {} if dense == "control" else refine_by_neighbours(
+                    job, key, store, ref, transform, [readers[k] for k in block], models, [shapes[k] for k in block],
+                    [to_ref[k] for k in block], fields, gains,
+                    [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
+                    opts, lambda fn, items, phase: _concurrently(fn, items, phase, threads), heights)
+                summary.dense_refined = [
+                    "via " + ", ".join(str(block[k]) for k in via[n]) if n in via else "reference" if fields[n] else "not"
+                    for n in range(len(block))]
         origin = tuple(int(round(v)) for v in ~transform * (out_transform.c, out_transform.f))  # output (0, 0) in reference pixels
         boxes = np.array([_footprint_box(to_ref[k], shapes[k], origin) for k in block])
         summary.footprints = [footprint_outline(_shifted(to_ref[k], origin), shapes[k]) for k in block]
@@ -733,7 +757,7 @@ def mosaic(
 
         zarr.open_group(store, mode="r+").attrs.update({
             **_attrs(summary, block, models, gains),
-            "dense_fields": json.dumps([None if f is None else {"group": f"dense/{n}", "row0": f["row0"], "col0": f["col0"],
+            "dense_fields": json.dumps([None if f is None else {"group": f["group"], "row0": f["row0"], "col0": f["col0"],
                                                                 "shape": list(f["shape"])} for n, f in enumerate(fields)]),
             "reference_origin": json.dumps(list(origin)),
         })
@@ -817,14 +841,15 @@ def _footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], marg
 
 
 def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, model, tp, to_ref, shape,
-            transform: Affine, opts: RegisterOptions, dem=None) -> dict | None:
-    """Dense field of block scene ``n`` against the reference, written to group ``dense/<n>`` of
-    ``store`` on the reference tiles its footprint touches; its location (see :func:`_scene_xy`)."""
+            transform: Affine, opts: RegisterOptions, dem=None, tag: str = "", sigma_known: bool = True) -> dict | None:
+    """Dense field of block scene ``n`` against the reference (or ``ref_reader``'s image on its
+    grid), written to group ``dense/<n><tag>`` of ``store`` on the reference tiles its footprint
+    touches; its location (see :func:`_scene_xy`)."""
     from ..pipeline.dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
     from ..pipeline.resample import polynomial_displacement
     from ..quality.postfilter import PostFilterOptions
 
-    sub = Job(job.file("dense", f"scene-{n}"), key)
+    sub = Job(job.file("dense", f"scene-{n}{tag}"), key)
     try:
         h, w = shape
         # reference pixel -> scene pixel as the adjusted model says, fitted over the footprint
@@ -848,7 +873,7 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
         r0, r1, c0, c1 = int(edges_r[ia]), int(edges_r[ib]), int(edges_c[ja]), int(edges_c[jb])
         if r0 >= r1 or c0 >= c1:
             return None
-        group = f"dense/{n}"
+        group = f"dense/{n}{tag}"
         if not sub.done("field"):
             rows = (tuple(grid.rows[ia:ib]), (c1 - c0,))  # whole rows of the footprint: carried along them
             parts = [a[r0:r1, c0:c1].rechunk(rows) for a in (field_["dx"], field_["dy"], field_["status"], pdx, pdy)]
@@ -861,14 +886,17 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
             part = xr.Dataset(
                 {"dx": (("y", "x"), carried[0]), "dy": (("y", "x"), carried[1]),
                  "status": (("y", "x"), carried[2].astype(np.uint8)),
-                 **{name: (("y", "x"), field_[name][r0:r1, c0:c1].rechunk(rows)) for name in ("sigma_x", "sigma_y")}},
+                 **{name: (("y", "x"), (field_[name] if sigma_known else da.full_like(field_[name], np.nan))[r0:r1, c0:c1]
+                          .rechunk(rows)) for name in ("sigma_x", "sigma_y")}},
                 attrs={"row0": r0, "col0": c0, "long_name": "displacement reference pixel -> scene pixel",
                        "filled": f"matched, or filled along the row (short holes interpolated by the post-filter, "
                                  f"other pixels within {CARRY_PX} px of a match carried from the nearest one)",
-                       "sigma": "sigma_x, sigma_y: standard deviations of the matched pixels' dx, dy (NaN elsewhere)"})
+                       "sigma": "sigma_x, sigma_y: standard deviations of the matched pixels' dx, dy (NaN elsewhere)"
+                                if sigma_known else "sigma_x, sigma_y: unknown (NaN): matched against refined neighbours, "
+                                "whose own error the match's sigma leaves out (5x optimistic, measured)"})
             part.to_zarr(store, group=group, mode="w", zarr_format=3, consolidated=False)
             sub.save("field")
-        return {"store": f"{store}/{group}", "row0": r0, "col0": c0, "shape": (r1 - r0, c1 - c0)}
+        return {"store": f"{store}/{group}", "group": group, "row0": r0, "col0": c0, "shape": (r1 - r0, c1 - c0)}
     finally:
         sub.release()
 
@@ -1024,7 +1052,8 @@ def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nband
             "comment": "of the position in the source scene (a feathered pixel: the scene source names): the "
                        "dense match's sigma where matched; elsewhere the block adjustment's parameter covariance "
                        "(with sigma0 taken as at least 1) propagated to the pixel, plus the scene's mean squared "
-                       "residual; NaN where unknown (no covariance) or no scene covers the pixel "
+                       "residual; NaN where unknown (no covariance; a pixel matched by a scene refined against its neighbours, "
+                       "whose error the match leaves out) or no scene covers the pixel "
                        "(geocoder.mosaic.layers)"})
     if ref.attrs.get("georeferenced"):
         ds = georeference(ds, ref.rio.crs, transform)
