@@ -81,8 +81,7 @@ def test_strips_without_control_follow_their_turbulence_via_neighbours(client, t
     assert before_r > 0.5 and after_r < 0.35  # filled: carried along the row from the nearest match
     assert after < 0.8 * before  # beyond the overlap the model is all there is
     assert errors[True][1] < 0.2 < errors[False][1]
-    # the layers: a matched pixel's sigma is its match's, finite; the strip's model pixels keep the model's status
-    assert np.isfinite(sigma_x[strip1 & (status == Status.MATCHED)]).all()
-    ratio = rms(errors[True][0], matched) / float(np.sqrt(np.mean(sigma_x[matched].astype(np.float64) ** 2)))
-    print(f"strip 1 matched: true RMSE / RMS sigma_x {ratio:.2f}")
+    # the layers: a pixel matched against the neighbours has no known sigma (its match's would leave
+    # out the neighbour's error: 5x optimistic, measured); the strip's model pixels keep the model's status
+    assert np.isnan(sigma_x[strip1 & (status == Status.MATCHED)]).all()
     assert set(np.unique(status[strip1])) <= {Status.MATCHED, Status.FILLED, Status.NO_TEXTURE, Status.BLUNDER, Status.MODEL}
