@@ -344,3 +344,18 @@ def test_line_ends_of_a_line_that_is_one_shift_take_the_line_mean(client, tmp_pa
     assert np.sqrt(np.mean(off**2)) < 0.3 * np.sqrt(np.mean(band_off**2))
     for r in range(h):  # one value per end
         assert np.ptp(got["dx"][r, :40]) == 0 and np.ptp(got["dx"][r, 360:]) == 0
+
+
+def test_rows_next_to_the_first_and_last_rows_with_data_take_theirs():
+    """The template's half-height above the first and below the last row with matches: those
+    rows' correction, its sigma grown by the step to the next row for each row farther out."""
+    h, w = 20, 100
+    shifts = 0.1 * np.arange(h, dtype=float)
+    usable = np.zeros((h, w), bool)
+    usable[5:15, 20:80] = True
+    c = line_corrections(line_sums(*_rows(shifts, usable)), min_count=32, max_gap=8, end_rows=3)
+    np.testing.assert_allclose(c.cx[2:5], shifts[5])
+    np.testing.assert_allclose(c.cx[15:18], shifts[14])
+    np.testing.assert_allclose(c.sx[[4, 3, 2]], [0.1, 0.2, 0.3], atol=1e-9)  # the step 0.1 per row, spread 0
+    assert np.isnan(c.cx[[0, 1, 18, 19]]).all() and not c.own[2:5].any()
+    assert (c.first[2:5] == 20).all() and (c.last[15:18] == 79).all()

@@ -69,7 +69,7 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
                           dtype=np.float64, width=dx.shape[1])
     (parts,) = dask.compute(parts)
     sums = combine_sums(parts[: len(SUMS)])
-    rows = line_corrections(sums, min_count=options.min_count, max_gap=options.max_gap)
+    rows = line_corrections(sums, min_count=options.min_count, max_gap=options.max_gap, end_rows=options.end_rows)
     if options.fit_order < 0:
         return rows, None
     fits = line_fits(parts[len(SUMS):].sum(axis=-1), order=options.fit_order,

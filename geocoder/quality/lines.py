@@ -11,8 +11,9 @@ polynomial alone, which cannot know the line's shift.
 * :func:`line_corrections` turns the sums of whole rows into a correction per row: the
   mean residual of a row with at least ``min_count`` usable pixels; for a row without,
   the linear interpolation between the nearest rows above and below that have one, if
-  at most ``max_gap`` rows lie between them; nothing otherwise (never extrapolated past
-  the first or last row with data). Its sigma is the spread of the row's residuals about
+  at most ``max_gap`` rows lie between them; the ``end_rows`` rows before the first and
+  after the last row with data take that row's (the rows its templates covered); nothing
+  farther. Its sigma is the spread of the row's residuals about
   their mean (how far a single shift per line is from the matches), for an interpolated
   row the larger of its two neighbours' plus half the step between their corrections.
 """
@@ -42,6 +43,9 @@ class LineOptions:
         Fewest usable (matched or filled) pixels a row needs for its own correction.
     max_gap : int
         Most consecutive rows without their own correction interpolated across.
+    end_rows : int
+        Rows before the first and after the last row with a correction of its own that take
+        its correction (the template's half-height: the rows its matches saw); 0: none.
     max_hole : int
         Longest run of unmatched pixels along a line (px) that takes the interpolation of the
         residuals at its two ends instead of the line's mean (0: never); also how far beyond
@@ -66,6 +70,7 @@ class LineOptions:
     enabled: bool = True
     min_count: int = 32
     max_gap: int = 8
+    end_rows: int = 3
     max_hole: int = 128
     edge: int = 32
     smooth: int = 0
@@ -77,6 +82,8 @@ class LineOptions:
             raise ValueError(f"min_count must be an integer >= 1, got {self.min_count!r}")
         if int(self.max_gap) != self.max_gap or self.max_gap < 0:
             raise ValueError(f"max_gap must be an integer >= 0, got {self.max_gap!r}")
+        if int(self.end_rows) != self.end_rows or self.end_rows < 0:
+            raise ValueError(f"end_rows must be an integer >= 0, got {self.end_rows!r}")
         if int(self.max_hole) != self.max_hole or self.max_hole < 0:
             raise ValueError(f"max_hole must be an integer >= 0, got {self.max_hole!r}")
         if int(self.edge) != self.edge or self.edge < 1:
@@ -167,7 +174,7 @@ class LineCorrection:
     last: np.ndarray
 
 
-def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8) -> LineCorrection:
+def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8, end_rows: int = 0) -> LineCorrection:
     """A correction per row from the sums of whole rows (:func:`line_sums` added over the row).
 
     Parameters
@@ -178,6 +185,9 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8)
         Fewest usable pixels a row needs for its own correction.
     max_gap : int
         Most consecutive rows without their own correction that are interpolated across.
+    end_rows : int
+        Rows before the first and after the last row with its own correction that take that
+        row's correction (0: none), its sigma grown by the step to the next row inside per row.
 
     Returns
     -------
@@ -212,6 +222,21 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8)
             out[f"c{name}"][gap] = (1.0 - t) * c[a] + t * c[b]
             out[f"s{name}"][gap] = np.sqrt(np.maximum(v[a], v[b])) + 0.5 * np.abs(c[b] - c[a])
         out["first"][gap], out["last"][gap] = np.maximum(first[a], first[b]), np.minimum(last[a], last[b])
+    # the rows before the first and after the last row with its own correction, up to end_rows:
+    # that row's correction, its sigma grown by the step to the next row per row of distance
+    owned = np.flatnonzero(own)
+    for edge_row, inner, rows_out in ((owned[0], owned[1] if owned.size > 1 else owned[0],
+                                       idx[max(owned[0] - end_rows, 0): owned[0]]),
+                                      (owned[-1], owned[-2] if owned.size > 1 else owned[-1],
+                                       idx[owned[-1] + 1: owned[-1] + 1 + end_rows])):
+        if rows_out.size == 0:
+            continue
+        d = np.abs(rows_out - edge_row)
+        span = max(abs(int(inner) - int(edge_row)), 1)
+        for c, v, name in ((cx, vx, "x"), (cy, vy, "y")):
+            out[f"c{name}"][rows_out] = c[edge_row]
+            out[f"s{name}"][rows_out] = np.sqrt(v[edge_row]) + d * np.abs(c[edge_row] - c[inner]) / span
+        out["first"][rows_out], out["last"][rows_out] = first[edge_row], last[edge_row]
     return LineCorrection(**out, own=own)
 
 
