@@ -54,7 +54,7 @@ from ..options import get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..pipeline.coarse import georeference_prior
 from ..pipeline.job import Job, JobRun, fingerprint, input_identity
-from ..pipeline.register import RegisterOptions, _Timer, ingest_all, job_directory
+from ..pipeline.register import RegisterOptions, _Timer, ingest_all, open_job
 from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
 from ..status import Status
@@ -432,6 +432,7 @@ def mosaic(
     model: str = "polynomial",
     dem: str | os.PathLike | None = None,
     report: str | os.PathLike | None = None,
+    resume: bool = True,
     show_progress=None,
 ) -> xr.Dataset:
     """Adjust overlapping scenes as one block on a reference and write one seamless mosaic.
@@ -513,6 +514,10 @@ def mosaic(
         Also write the report directory (:func:`geocoder.mosaic.write_report`: Markdown
         with the overlap graph, the adjustment and the seams, and figures); refused before
         the job if it exists and geocoder did not write it.
+    resume : bool
+        Continue the unfinished job writing ``out`` (same inputs, options and version):
+        pairs, the adjustment and output tiles finished by an earlier, interrupted run are not
+        computed again. False starts afresh.
     show_progress : Progress or bool, optional
         Progress receiver, as in :func:`geocoder.register`.
 
@@ -584,7 +589,7 @@ def mosaic(
                       dem=None if dem is None else input_identity(dem), options=repr(opts), output_tile=output_tile,
                       control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance,
                       dense=dense, model=model, version=__version__)
-    job = Job(job_directory(out), key, target=out) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
+    job = open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     if job.resumed:
         log.info("resuming the job in %s", job.path)
     with JobRun(job, resumable=out is not None) as run, progress.reporting(show_progress), \

@@ -381,7 +381,7 @@ def register(
     timer = _Timer(summary)
     key = _job_key(base, distorted, bscene, dscene, opts, nodata, dist_nodata) if out is not None else "in-memory"
     # the lock first: a second job to the same output is refused before it starts a cluster
-    job = _open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
+    job = open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     if job.resumed:
         log.info("resuming the job in %s", job.path)
     if show_progress is None:
@@ -500,7 +500,15 @@ def job_directory(out: str) -> str:
     return storage.sibling(out, f".{storage.split(out)[1]}.geocoder-job")
 
 
-def _open_job(out: str, key: str, resume: bool) -> Job:
+def open_job(out: str, key: str, resume: bool) -> Job:
+    """The job writing ``out`` (its directory beside it, :func:`job_directory`), resumed if
+    ``resume`` and an interrupted run of the same ``key`` left one, else started afresh.
+
+    Raises
+    ------
+    InputError
+        If the job's files cannot be written beside ``out`` (naming ``out``).
+    """
     try:
         job = Job(job_directory(out), key, target=out)
         if not resume and job.resumed:
