@@ -60,6 +60,7 @@ def test_block_mosaic_against_truth(block, client, tmp_path):
     ds = mosaic(paths, reference=d / "ortho.tif", out=out, tile=128, client=client)
     s = json.loads(ds.attrs["summary"])
     assert s["left_out"] == {} and len(s["pairs"]) == 6
+    assert all(0.05 <= p["overlap"] <= 1.0 for p in s["pairs"])  # reported: the share of i inside j
     assert int(s["rays"].get("3", 0)) > 0  # multi-ray ties: one point seen in three scenes
     assert ds.rio.crs.to_epsg() == 32633
     own, seam = errors(ds)

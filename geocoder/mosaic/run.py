@@ -86,7 +86,8 @@ class MosaicSummary:
     control_points : list of int
         Control points found per scene.
     pairs : list of dict
-        Overlapping pairs: scene indices ``i``, ``j`` and their tie points ``ties``.
+        Overlapping pairs: scene indices ``i``, ``j``, their tie points ``ties`` and ``overlap``,
+        the share of scene ``i`` inside scene ``j`` (from the placements on the reference).
     left_out : dict
         Scene index -> why it was left out of the block.
     sigma0 : float
@@ -176,7 +177,8 @@ class MosaicSummary:
         kept = len(self.scenes) - len(self.left_out)
         return [
             f"scenes: {len(self.scenes)} ({kept} in the block); control points per scene {self.control_points}",
-            f"overlapping pairs: {len(self.pairs)}, tie points " + ", ".join(f"{p['i']}-{p['j']}: {p['ties']}" for p in self.pairs),
+            f"overlapping pairs: {len(self.pairs)}, tie points (overlap) "
+            + ", ".join(f"{p['i']}-{p['j']}: {p['ties']}" + (f" ({p['overlap']:.0%})" if "overlap" in p else "") for p in self.pairs),
             *(["placed: " + ", ".join(f"{k} {how}" for k, how in self.placed.items())]
               if any(how != "reference" for how in self.placed.values()) else []),
             *(f"left out: {self.scenes[int(k)]}: {why}" for k, why in self.left_out.items()),
@@ -656,20 +658,22 @@ def mosaic(
         ties = []
         with timer("tie points"):
             placed = sorted(ref_to)
-            pairs = [(i, j) for a, i in enumerate(placed) for j in placed[a + 1:]
-                     if _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j]) >= 0.05]
+            overlaps = {(i, j): _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j])
+                        for a, i in enumerate(placed) for j in placed[a + 1:]}
+            pairs = [ij for ij, share in overlaps.items() if share >= 0.05]
             found = match_pairs(job, "ties", [PairSpec(f"pair-{i}-{j}", i + 1, j + 1,
                                                        _affine_between(to_ref[i], ref_to[j], shapes[i])) for i, j in pairs],
                                 images, image_readers, points, opts)
             for (i, j), result in zip(pairs, found):
                 if isinstance(result, GeocoderError):
-                    summary.pairs.append({"i": i, "j": j, "ties": 0, "problem": str(result)})
+                    summary.pairs.append({"i": i, "j": j, "ties": 0, "overlap": round(overlaps[i, j], 3),
+                                          "problem": str(result)})
                     continue
                 tp, _, _ = result
                 tp = tp.select(tp.inlier)
                 ties.append(Matches(i, j, np.column_stack([tp.base_x, tp.base_y]), np.column_stack([tp.dist_x, tp.dist_y]),
                                     np.column_stack([tp.sigma_x, tp.sigma_y])))
-                summary.pairs.append({"i": i, "j": j, "ties": len(tp)})
+                summary.pairs.append({"i": i, "j": j, "ties": len(tp), "overlap": round(overlaps[i, j], 3)})
         ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
         for k in range(len(opened)):
             if not ok[k] and str(k) not in summary.left_out:
