@@ -311,13 +311,15 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
               help="Every scene's model: a polynomial of map coordinates (--order), the line scanner it carries, or its RPCs "
                    "with an affine bias correction.")
 @click.option("--dem", default=None, help="DEM (m): ground heights of the points and of every output pixel (default 0).")
+@click.option("--check-points", default=0.0, show_default=True, type=click.FloatRange(0.0, 1.0, max_open=True),
+              help="Share of the control points withheld from the adjustment as check points (reported).")
 @click.option("--restart", is_flag=True, help="Do not resume an interrupted run of the same job; start afresh.")
 @tile_option
 @overwrite_option
 @scheduler_option
 @_friendly
 def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, resampling, balance, cog, dense, report, model,
-           dem, restart, tile, overwrite, scheduler):
+           dem, check_points, restart, tile, overwrite, scheduler):
     """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
     from .mosaic import MosaicSummary
     from .mosaic import mosaic as run
@@ -341,7 +343,8 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, re
     t0 = time.perf_counter()
     ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
              feather=feather, seams=seam_mode, resampling=resampling, balance=balance, scheduler=scheduler,
-             overwrite=overwrite, cog=cog, dense=dense, model=model, dem=dem, report=report, resume=not restart)
+             overwrite=overwrite, cog=cog, dense=dense, model=model, dem=dem, report=report, resume=not restart,
+             check_points=check_points)
     import json
 
     for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():

@@ -168,3 +168,15 @@ def test_dense_refinement_follows_scan_line_turbulence(client, tmp_path):
     assert figures[True][0] <= 0.3
     assert figures[True][1] <= 0.2
     assert figures[True][0] < figures[False][0] / 2
+
+
+def test_check_points_are_withheld_and_reported(block, tmp_path, client):
+    """Every 4th control point withheld: the adjustment does not see them, their residuals
+    through the adjusted models are reported, as small as the adjustment's own."""
+    d, paths = block
+    ds = mosaic(paths[:2], reference=d / "ortho.tif", tile=128, client=client, check_points=0.25, balance=False)
+    s = json.loads(ds.attrs["summary"])
+    print("check points", s["check_points"], s["check_rmse_px"], "control", s["control_points"], "rms", s["rms_px"])
+    assert all(n > 10 for n in s["check_points"])
+    assert all(n >= 2 * c for n, c in zip(s["control_points"], s["check_points"]))  # 3 of 4 still used
+    assert all(0.0 < r < 0.1 for r in s["check_rmse_px"])

@@ -129,6 +129,11 @@ class MosaicSummary:
         RMS grey-value step along all seams.
     seam_cells_moved : int
         Coarse cells the least-cost cut gave another scene than the centre rule.
+    check_points : list of int
+        Control points withheld as check points, per scene (empty without ``check_points``).
+    check_rmse_px : list of float
+        RMS of the check points' residuals (scene pixels) through the adjusted model, per scene
+        (NaN for a scene without check points or out of the block).
     job : dict
         The job's tile tasks of this run (:meth:`geocoder.pipeline.job.Job.report`): ``resumed``,
         ``tile_tasks``, ``run``, ``skipped`` (finished by an earlier, interrupted run),
@@ -163,6 +168,8 @@ class MosaicSummary:
     seams: list[dict] = field(default_factory=list)
     seam_grey_step: float = float("nan")
     seam_cells_moved: int = 0
+    check_points: list[int] = field(default_factory=list)
+    check_rmse_px: list[float] = field(default_factory=list)
     job: dict = field(default_factory=dict)
     placed: dict = field(default_factory=dict)
     dense_refined: list[str] = field(default_factory=list)
@@ -185,6 +192,8 @@ class MosaicSummary:
             "ground points by rays: " + ", ".join(f"{k}: {v}" for k, v in self.rays.items()),
             f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
             + ", ".join(f"{r:.3f}" for r in self.rms_px),
+            *([f"check points (withheld): {sum(self.check_points)}, RMS residual per scene (px) "
+               + ", ".join(f"{r:.3f}" for r in self.check_rmse_px)] if sum(self.check_points) else []),
             *([f"radiometric balance: grey-value step at the tie points {self.seam_step[0]:.3g} before, "
                f"{self.seam_step[1]:.3g} after (RMS, all bands)"] if self.seam_step else []),
             *([f"seams ({self.seam_mode}): grey-value step along the seams {self.seam_grey_step:.3g} (RMS), "
@@ -422,6 +431,7 @@ def mosaic(
     tile: int | None = None,
     output_tile: int | None = None,
     control_scenes: list[int] | None = None,
+    check_points: float = 0.0,
     feather: float = 8.0,
     seams: str = "least-cost",
     resampling: str = "bilinear",
@@ -467,6 +477,10 @@ def mosaic(
     control_scenes : list of int, optional
         Scenes whose reference matches serve as control points (default all); the others
         are placed by tie points only (sparse control).
+    check_points : float
+        Share of every control scene's control points withheld from the adjustment as check
+        points (every n-th; 0: none): their residuals through the adjusted models are the
+        summary's ``check_rmse_px``, an accuracy the adjustment did not see.
     feather : float
         Width of the blend across a seam, in output pixels.
     seams : {"least-cost", "centre"}
@@ -547,6 +561,8 @@ def mosaic(
         tile = get_option("tile")
     if not 1 <= order <= 3:
         raise ValueError(f"order must be 1, 2 or 3, got {order}")
+    if not 0.0 <= check_points < 1.0:
+        raise ValueError(f"check_points must be in [0, 1), got {check_points}")
     if seams not in ("least-cost", "centre"):
         raise ValueError(f"seams must be 'least-cost' or 'centre', got {seams!r}")
     if model not in KINDS:
@@ -589,7 +605,7 @@ def mosaic(
     # replaced at the same path, or another geocoder, must not reuse the job's finished work
     key = fingerprint(scenes=[input_identity(s) for s in scenes], reference=input_identity(reference),
                       dem=None if dem is None else input_identity(dem), options=repr(opts), output_tile=output_tile,
-                      control=sorted(allowed), feather=feather, seams=seams, resampling=resampling, balance=balance,
+                      control=sorted(allowed), check_points=check_points, feather=feather, seams=seams, resampling=resampling, balance=balance,
                       dense=dense, model=model, version=__version__)
     job = open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     if job.resumed:
@@ -682,10 +698,11 @@ def mosaic(
         if not block:
             raise InputError(reference, "no scene could be placed on the reference")
         index = {k: n for n, k in enumerate(block)}
+        used, checks = _withhold(control, check_points)
         with timer("block adjustment"):
             problem = build_problem(
                 [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
-                [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
+                [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in used if m.j in index],
                 [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
                 order=order, height=heights,
                 models=None if model == "polynomial" else [(sensors[k], sensors[k].initial_params()) for k in block],
@@ -697,6 +714,8 @@ def mosaic(
         summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
                           for n in range(len(block))]
         models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
+        if check_points:
+            summary.check_points, summary.check_rmse_px = _check_residuals(checks, models, index, len(opened), heights)
         for n, k in enumerate(block):
             if k in placement.via:  # its footprint from its adjusted model, not the overlap's extrapolation
                 to_ref[k], ref_to[k] = footprint_from_model(*models[n], transform, to_ref[k], shapes[k], heights)
@@ -827,6 +846,36 @@ def _balance(readers: list, ref_reader: WindowReader, transform: Affine, tile: i
         before.append(seam_step(t))
         after.append(seam_step(t, gains[:, b]))
     return gains, [float(np.sqrt(np.nanmean(np.square(before)))), float(np.sqrt(np.nanmean(np.square(after))))]
+
+
+def _withhold(control: list, share: float) -> tuple[list, list]:
+    """``control`` split into the points the adjustment uses and every n-th withheld as a check
+    (``n = round(1 / share)``; none for ``share = 0``)."""
+    if not share:
+        return control, []
+    n = max(round(1.0 / share), 2)
+    used, checks = [], []
+    for m in control:
+        keep = np.arange(len(m)) % n != n - 1
+        used.append(Matches(m.i, m.j, m.a[keep], m.b[keep], m.sigma[keep]))
+        checks.append(Matches(m.i, m.j, m.a[~keep], m.b[~keep], m.sigma[~keep]))
+    return used, checks
+
+
+def _check_residuals(checks: list, models: list, index: dict, nscenes: int, heights=None) -> tuple[list, list]:
+    """Check points per scene and the RMS of their residuals (scene pixels) through the adjusted models."""
+    count = [0] * nscenes
+    rmse = [float("nan")] * nscenes
+    for m in checks:
+        if m.j not in index or len(m) == 0:
+            continue
+        model, params = models[index[m.j]]
+        e, n = m.a[:, 0], m.a[:, 1]
+        h = np.zeros(e.size) if heights is None else np.asarray(heights(e, n), dtype=np.float64)
+        xy = model.project(params, np.column_stack([e, n, h]))
+        count[m.j] = len(m)
+        rmse[m.j] = float(np.sqrt(np.mean(np.sum((xy - m.b) ** 2, axis=1))))
+    return count, rmse
 
 
 def _affine_between(i_to_ref, ref_to_j, shape, samples: int = 9) -> np.ndarray:
