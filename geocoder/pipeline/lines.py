@@ -219,10 +219,11 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np
     those at most ``reach`` px beyond that first or last column (the line's ends: the
     template's margin, an untextured stretch), the polynomial plus the mean residual of the
     usable pixels within ``band`` columns inside that end (its departure from the line's mean
-    shrunk as a hole's), its variance their spread about it plus the line's (how far the residual may move between the band and the pixel). The
-    residual near a line's end departs from the line's mean by up to a pixel where the
-    global polynomial fits worst, at the scene's edges: measured on the issue 14 cases,
-    0.5 px RMSE with the line's mean, 0.06-0.1 with the end's. The ends' bands lie inside
+    shrunk as a hole's), its variance their spread about it plus the line's (how far the
+    residual may move between the band and the pixel). The residual near a line's end
+    departs from the line's mean by up to a pixel where the global polynomial fits worst, at
+    the scene's edges: measured on the issue 14 cases, 0.5 px RMSE with the line's mean,
+    0.06-0.1 with the end's. The ends' bands lie inside
     the columns :func:`line_field` reads (``max_hole + edge + 1`` each side), so the result
     does not depend on the tiling. ``rows`` is the :data:`ROW_TABLE` of the block's rows,
     ``cols`` the block's columns.
