@@ -593,7 +593,7 @@ def _dense_block(block_info=None, *, state: str, slots: np.ndarray, grid: TileGr
 
 
 def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfilter_options, *, store: bool = False,
-                job: Job | None = None) -> dict[str, da.Array]:
+                job: Job | None = None, line_sums_of: PolyMap | None = None) -> dict:
     """Final displacement and quality arrays from the state store (lazy).
 
     Matched pixels go through the scan-line post-filter (blunders removed, short holes
@@ -604,6 +604,11 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
     scene size. With ``store``, those tasks run now and write their tiles into the state
     store (array ``field``, through ``job`` when given), and the arrays returned read them:
     for callers that compute the field more than once (the line estimates, then the output).
+    With ``store`` and ``line_sums_of`` (the polynomial ``fallback`` comes from), each of those
+    tasks also returns its tile's row sums (:func:`geocoder.pipeline.lines.tile_sums`, with the
+    polynomial computed in the task), returned side by side as ``"line_sums"`` for
+    :func:`geocoder.pipeline.lines.row_corrections`: no second pass over the field (which, as one
+    graph of every tile, held memory that grew with the scene: 598 -> 914 MiB per worker at 8192²).
     """
     from ..status import Status
 
@@ -613,8 +618,9 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
         state=result.store, slots=result.slots, grid=grid, postfilter_options=postfilter_options,
         name=f"dense-field-{dask.base.tokenize(result.store, result.slots, postfilter_options)}",
     )
+    sums = None
     if store:
-        stack = _stored(stack, result.store, grid, job)
+        stack, sums = _stored(stack, result.store, grid, job, line_sums_of)
     dx, dy, status = stack[0], stack[1], stack[2].astype(np.uint8)
     good = (status == Status.MATCHED) | (status == Status.FILLED)
     return {
@@ -624,24 +630,47 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
         "sigma_x": stack[3],
         "sigma_y": stack[4],
         "correlation": stack[5],
+        **({"line_sums": sums} if sums is not None else {}),
     }
 
 
-def _store_block(state: str, window: tuple[int, int, int, int], block: np.ndarray) -> None:
+def _store_block(state: str, window: tuple[int, int, int, int], block: np.ndarray, mapping: PolyMap | None = None,
+                 width: int = 0) -> np.ndarray | None:
+    from ..status import Status
+    from .lines import tile_sums
+    from .resample import poly_grid
+
     r0, r1, c0, c1 = window
     zarr.open_group(state, mode="r+")["field"][:, r0:r1, c0:c1] = block
+    if mapping is None:
+        return None
+    # the row sums of the field as dense_field returns it: the polynomial where not usable
+    px, py = (poly_grid(mapping, (r0, r1), (c0, c1), k).astype(np.float32) for k in (0, 1))
+    status = block[2].astype(np.uint8)
+    good = (status == Status.MATCHED) | (status == Status.FILLED)
+    dx, dy = (np.where(good, block[k], p).astype(np.float32) for k, p in ((0, px), (1, py)))
+    return tile_sums(dx, dy, px, py, status, block[3], block[4], col0=c0, width=width)
 
 
-def _stored(stack: da.Array, state: str, grid: TileGrid, job: Job | None) -> da.Array:
+def _stored(stack: da.Array, state: str, grid: TileGrid, job: Job | None,
+            mapping: PolyMap | None = None) -> tuple[da.Array, np.ndarray | None]:
     """Write ``stack`` (6, H, W) tile by tile into the array ``field`` of the state store; the
-    same array read back lazily, in the same chunks."""
+    same array read back lazily, in the same chunks, and with ``mapping`` the tiles' row sums
+    side by side, shape (n, H, tile columns)."""
     g = zarr.open_group(state, mode="r+")
     if "field" not in g:
         g.create_array("field", shape=stack.shape, chunks=(stack.shape[0], grid.rows[0], grid.cols[0]), dtype="float32",
                        fill_value=np.nan, compressors=None)
     blocks = stack.to_delayed(optimize_graph=False)
+    token = "" if mapping is None else "-" + dask.base.tokenize(mapping.to_dict())
     tasks = {t.key: dask.delayed(_store_block, pure=True)(state, (t.row0, t.row1, t.col0, t.col1), blocks[0, t.iy, t.ix],
-                                                          dask_key_name=f"dense-field-store-{t.key}-{stack.name}")
+                                                          mapping, grid.width,
+                                                          dask_key_name=f"dense-field-store-{t.key}-{stack.name}{token}")
              for t in grid}
-    run_tiles(job, "dense-field", tasks, phase="dense field (post-filter)")
-    return da.from_zarr(g["field"], chunks=stack.chunks, name=f"dense-field-stored-{stack.name}")
+    done = run_tiles(job, "dense-field" if mapping is None else "dense-field-sums", tasks, phase="dense field (post-filter)")
+    sums = None
+    if mapping is not None:
+        sums = np.zeros((next(iter(done.values())).shape[0], grid.height, len(grid.cols)))
+        for t in grid:
+            sums[:, t.row0:t.row1, t.ix] = done[t.key][..., 0]
+    return da.from_zarr(g["field"], chunks=stack.chunks, name=f"dense-field-stored-{stack.name}"), sums

@@ -34,16 +34,24 @@ from ..quality.lines import (
 from ..status import Status
 
 
-def _block_sums(dx, dy, px, py, status, sigma_x, sigma_y, block_info=None, *, width: int):
+def tile_sums(dx, dy, px, py, status, sigma_x, sigma_y, *, col0: int, width: int) -> np.ndarray:
+    """The per-row sums of one tile of a dense field that :func:`row_corrections` adds up:
+    :data:`~geocoder.quality.lines.SUMS` then :data:`~geocoder.quality.lines.FIT_SUMS`, shape
+    ``(n, rows, 1)``; ``dx, dy`` the field (the polynomial where not usable), ``px, py`` the
+    polynomial, ``col0`` the tile's first column in a scene ``width`` wide."""
     usable = (status == Status.MATCHED) | (status == Status.FILLED)
-    col0 = block_info[0]["array-location"][1][0]
     lines = line_sums(dx, dy, px, py, usable, sigma_x, sigma_y, col0)
     fits = fit_sums(dx - px, dy - py, sigma_x, sigma_y, status == Status.MATCHED, col0=col0, width=width)
     return np.concatenate([lines, fits])[..., None]
 
 
+def _block_sums(dx, dy, px, py, status, sigma_x, sigma_y, block_info=None, *, width: int):
+    col0 = block_info[0]["array-location"][1][0]
+    return tile_sums(dx, dy, px, py, status, sigma_x, sigma_y, col0=col0, width=width)
+
+
 def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], options: LineOptions,
-                    *, correlation: int = 51) -> tuple[LineCorrection, LineFit | None]:
+                    *, correlation: int = 51, sums: np.ndarray | None = None) -> tuple[LineCorrection, LineFit | None]:
     """Compute the correction of every row of a dense field (its matched and filled pixels),
     and the fit along every row that its matches are shrunk toward (None with
     ``options.fit_order = -1``), from one pass over the field.
@@ -57,22 +65,28 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     options : LineOptions
     correlation : int
         Template length along the line (px): a row's fit needs twice as many matches.
+    sums : ndarray, shape (n, H, tile columns), optional
+        The tiles' :func:`tile_sums` side by side, if computed already (by the stored
+        post-filter pass, :func:`geocoder.pipeline.dense.dense_field`); else one pass over
+        ``field`` computes them.
 
     Returns
     -------
     LineCorrection, LineFit or None
     """
-    dx = field["dx"]
-    n = len(SUMS) + len(FIT_SUMS)
-    parts = da.map_blocks(_block_sums, dx, field["dy"], polynomial[0], polynomial[1], field["status"], field["sigma_x"],
-                          field["sigma_y"], new_axis=0, chunks=((n,), dx.chunks[0], (1,) * len(dx.chunks[1])),
-                          dtype=np.float64, width=dx.shape[1])
-    (parts,) = dask.compute(parts)
-    sums = combine_sums(parts[: len(SUMS)])
-    rows = line_corrections(sums, min_count=options.min_count, max_gap=options.max_gap, end_rows=options.end_rows)
+    if sums is None:
+        dx = field["dx"]
+        n = len(SUMS) + len(FIT_SUMS)
+        sums = da.map_blocks(_block_sums, dx, field["dy"], polynomial[0], polynomial[1], field["status"],
+                             field["sigma_x"], field["sigma_y"], new_axis=0,
+                             chunks=((n,), dx.chunks[0], (1,) * len(dx.chunks[1])), dtype=np.float64,
+                             width=dx.shape[1])
+        (sums,) = dask.compute(sums)
+    rows = line_corrections(combine_sums(sums[: len(SUMS)]), min_count=options.min_count, max_gap=options.max_gap,
+                            end_rows=options.end_rows)
     if options.fit_order < 0:
         return rows, None
-    fits = line_fits(parts[len(SUMS):].sum(axis=-1), order=options.fit_order,
+    fits = line_fits(sums[len(SUMS):].sum(axis=-1), order=options.fit_order,
                      min_count=max(options.min_count, 2 * correlation), correlation=correlation)
     return rows, fits
 

@@ -428,14 +428,17 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
                 breader, dreader, grid, seeds_from_tiepoints(tp, mapping), mapping, job.file("dense.zarr"),
                 band=opts.band - 1, dist_band=(opts.dist_band or opts.band) - 1, opts=opts.matching, job=job,
             )
-            field_ = dense_field(result, (dx, dy), opts.postfilter, store=True, job=job)  # the post-filter, stored
+            # the post-filter, stored, with the row sums of the line estimates from the same tasks
+            field_ = dense_field(result, (dx, dy), opts.postfilter, store=True, job=job,
+                                 line_sums_of=mapping if opts.lines.enabled else None)
         summary.dense_rounds = result.rounds
         summary.dense_converged = result.converged
         summary.dense_new_per_round = result.new_per_round
         if opts.lines.enabled:
             with timer("line estimates"):
                 correlation = 2 * opts.matching.alsc.radius + 1
-                rows, fits = row_corrections(field_, (dx, dy), opts.lines, correlation=correlation)
+                rows, fits = row_corrections(field_, (dx, dy), opts.lines, correlation=correlation,
+                                             sums=field_.get("line_sums"))
                 field_ = line_field(result.store, chunks, mapping, rows, fits, opts.lines, correlation=correlation)
         dx, dy = field_["dx"], field_["dy"]
         extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
