@@ -58,6 +58,25 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 S2 = DATA / "s2_arosics" / "ref_S2A_20160608T153121_T33UUU_sub.tif"
 
 
+def write_block(work: Path, scenes: list, size: int, name: str) -> tuple[np.ndarray, rasterio.Affine, list[Path]]:
+    """The reference (a Sentinel-2 crop east of its no-data wedge, ``ortho.tif``) and the block's
+    scenes rendered from it (``{name}{k}.tif``, no georeference) in ``work``; the crop, its
+    transform and the scenes' paths."""
+    with rasterio.open(S2) as src:
+        full = src.read(1).astype(np.float32)
+        t = src.transform
+    r0, c0 = 300, 900
+    extent = int(max(max(s.row0, s.col0) for s in scenes) + 1.2 * size + 80)
+    ortho = full[r0 : r0 + extent, c0 : c0 + extent]
+    transform = t * rasterio.Affine.translation(c0, r0)
+    write_geotiff(work / "ortho.tif", ortho, transform=transform, crs="EPSG:32633")
+    paths = []
+    for k, s in enumerate(scenes):
+        paths.append(work / f"{name}{k}.tif")
+        write_geotiff(paths[-1], render(ortho, s, seed=k))
+    return ortho, transform, paths
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=384)
@@ -71,19 +90,9 @@ def main() -> None:
         return
     size = args.size
     work = Path(tempfile.mkdtemp(prefix="bench-mosaic-"))
-    with rasterio.open(S2) as src:
-        full = src.read(1).astype(np.float32)
-        t = src.transform
-    r0, c0 = 300, 900  # east of the no-data wedge
     scenes = block_layout(3, 3, size=size, overlap=(0.2, 0.6), origin=(40.0, 40.0), seed=5)
-    extent = int(max(max(s.row0, s.col0) for s in scenes) + 1.2 * size + 80)
-    ortho = full[r0 : r0 + extent, c0 : c0 + extent]
-    transform = t * rasterio.Affine.translation(c0, r0)
-    write_geotiff(work / "ortho.tif", ortho, transform=transform, crs="EPSG:32633")
-    paths = []
-    for k, s in enumerate(scenes):
-        paths.append(work / f"scene{k}.tif")
-        write_geotiff(paths[-1], render(ortho, s, seed=k))
+    ortho, transform, paths = write_block(work, scenes, size, "scene")
+    extent = ortho.shape[0]
     corners = [0, 2, 6, 8]
     rows = []
 
@@ -172,20 +181,10 @@ def turbulent_strips(size: int, workers: int) -> None:
     from geocoder.mosaic import scene_positions
 
     work = Path(tempfile.mkdtemp(prefix="bench-mosaic-turbulence-"))
-    with rasterio.open(S2) as src:
-        full = src.read(1).astype(np.float32)
-        t = src.transform
-    r0, c0 = 300, 900
     scenes = [replace(s, turbulence_px=1.5, turbulence_seed=k)
               for k, s in enumerate(block_layout(3, 3, size=size, overlap=(0.2, 0.6), origin=(40.0, 40.0), seed=5))]
-    extent = int(max(max(s.row0, s.col0) for s in scenes) + 1.2 * size + 80)
-    ortho = full[r0 : r0 + extent, c0 : c0 + extent]
-    transform = t * rasterio.Affine.translation(c0, r0)
-    write_geotiff(work / "ortho.tif", ortho, transform=transform, crs="EPSG:32633")
-    paths = []
-    for k, s in enumerate(scenes):
-        paths.append(work / f"strip{k}.tif")
-        write_geotiff(paths[-1], render(ortho, s, seed=k))
+    ortho, transform, paths = write_block(work, scenes, size, "strip")
+    extent = ortho.shape[0]
     corners = [0, 2, 6, 8]
     rows = []
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cl, Client(cl) as c:
