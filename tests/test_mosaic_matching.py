@@ -19,7 +19,7 @@ from affine import Affine
 from geocoder.errors import GeocoderError
 from geocoder.kernels.polynomial import fit_polymap
 from geocoder.mosaic.matching import PairSpec, match_pairs, scene_points
-from geocoder.mosaic.run import _affine_between
+from geocoder.mosaic.placement import affine_between
 from geocoder.pipeline.detect import interest_points
 from geocoder.pipeline.job import Job
 from geocoder.pipeline.register import RegisterOptions, RegisterSummary, _Timer, find_tiepoints, ingest_all
@@ -113,7 +113,7 @@ def test_batched_points_equal_pair_by_pair_in_a_fixed_number_of_rounds(files, cl
               ((t.select(t.inlier), m, c) for t, m, c in placed)]
     ref_to = [m for _, m, _ in placed]
     pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
-    specs = [PairSpec(f"pair-{i}-{j}", i + 1, j + 1, _affine_between(to_ref[i], ref_to[j], (SIZE, SIZE))) for i, j in pairs]
+    specs = [PairSpec(f"pair-{i}-{j}", i + 1, j + 1, affine_between(to_ref[i], ref_to[j], (SIZE, SIZE))) for i, j in pairs]
     ties = match_pairs(job, "ties", specs, images, readers, points, opts)
     assert {"ties-coarse", "ties-pass-1", "ties-pass-2"} <= set(_stages(job, "ties")) and len(_stages(job, "ties")) <= 4
     assert job.tiles["ties-coarse"]["run"] == len(pairs)

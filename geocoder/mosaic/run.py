@@ -66,7 +66,7 @@ from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_
 from .heights import MapDEM, ref_to_scene_prior
 from .layers import field_layers, model_layers, pixel_sigma, scene_uncertainty
 from .matching import PairSpec, match_pairs, scene_points
-from .placement import Placement, footprint_from_model, place_by_neighbours
+from .placement import Placement, affine_between, footprint_from_model, overlap_fraction, place_by_neighbours
 from .projection import project_window
 from .radiometry import seam_step, solve_balance
 from .seamplan import plan_seams, read_labels
@@ -262,16 +262,6 @@ def _seam_figures(summary: MosaicSummary, stats: list[dict], block: list[int], p
     summary.seams = table
     n = sum(r["pixels"] for r in table)
     summary.seam_grey_step = float(np.sqrt(sum(r["pixels"] * r["grey_step"] ** 2 for r in table) / n)) if n else float("nan")
-
-
-def _overlap(i_shape, i_to_ref, ref_to_j, j_shape, samples: int = 16) -> float:
-    """Fraction of scene ``i`` (a grid of samples) that falls inside scene ``j``."""
-    h, w = i_shape
-    ys, xs = np.meshgrid(np.linspace(0, h - 1, samples), np.linspace(0, w - 1, samples), indexing="ij")
-    rx, ry = i_to_ref(xs.ravel(), ys.ravel())
-    jx, jy = ref_to_j(rx, ry)
-    inside = (jx >= 0) & (jx <= j_shape[1] - 1) & (jy >= 0) & (jy <= j_shape[0] - 1)
-    return float(inside.mean())
 
 
 def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int], located: dict | None,
@@ -674,11 +664,11 @@ def mosaic(
         ties = []
         with timer("tie points"):
             placed = sorted(ref_to)
-            overlaps = {(i, j): _overlap(shapes[i], to_ref[i], ref_to[j], shapes[j])
+            overlaps = {(i, j): overlap_fraction(shapes[i], to_ref[i], ref_to[j], shapes[j])
                         for a, i in enumerate(placed) for j in placed[a + 1:]}
             pairs = [ij for ij, share in overlaps.items() if share >= 0.05]
             found = match_pairs(job, "ties", [PairSpec(f"pair-{i}-{j}", i + 1, j + 1,
-                                                       _affine_between(to_ref[i], ref_to[j], shapes[i])) for i, j in pairs],
+                                                       affine_between(to_ref[i], ref_to[j], shapes[i])) for i, j in pairs],
                                 images, image_readers, points, opts)
             for (i, j), result in zip(pairs, found):
                 if isinstance(result, GeocoderError):
@@ -876,15 +866,6 @@ def _check_residuals(checks: list, models: list, index: dict, nscenes: int, heig
         count[m.j] = len(m)
         rmse[m.j] = float(np.sqrt(np.mean(np.sum((xy - m.b) ** 2, axis=1))))
     return count, rmse
-
-
-def _affine_between(i_to_ref, ref_to_j, shape, samples: int = 9) -> np.ndarray:
-    """Affine scene ``i`` pixel -> scene ``j`` pixel through the reference (2x3), fitted on a grid."""
-    h, w = shape
-    ys, xs = np.meshgrid(np.linspace(0, h - 1, samples), np.linspace(0, w - 1, samples), indexing="ij")
-    jx, jy = ref_to_j(*i_to_ref(xs.ravel(), ys.ravel()))
-    design = np.column_stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
-    return np.linalg.lstsq(design, np.column_stack([jx, jy]), rcond=None)[0].T
 
 
 def _footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], margin: int = 16) -> tuple[int, int, int, int]:
