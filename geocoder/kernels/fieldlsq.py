@@ -827,7 +827,6 @@ def field_lsq(
     d = np.asarray(dist, dtype=np.float64)
     dm, ds = _location_scale(d)
     d = (d - dm) / ds
-    cgy, cgx = np.gradient(d)  # the smooth gradients of the precision (NaN spreads to neighbours)
     px = np.array(x0, dtype=np.float64)
     py = np.array(y0, dtype=np.float64)
     weight = np.asarray(eligible, dtype=np.bool_) & np.isfinite(px) & np.isfinite(py)
@@ -838,8 +837,6 @@ def field_lsq(
     iw = np.full((h, w), np.nan)
     gxw = np.full((h, w), np.nan)
     gyw = np.full((h, w), np.nan)
-    cxw = np.full((h, w), np.nan)
-    cyw = np.full((h, w), np.nan)
     sol = np.full((8, h, w), np.nan)
     stats = np.full((5, h, w), np.nan)
     step = np.full((h, w), np.inf)
@@ -849,6 +846,10 @@ def field_lsq(
                          step)
         stats[0:2] *= _noise_gain(radius, radius_y)
         stats[2] *= _noise_gain(radius, radius_y) ** 2
+    else:
+        cgy, cgx = np.gradient(d)  # the smooth gradients of the precision (NaN spreads to neighbours)
+        cxw = np.full((h, w), np.nan)
+        cyw = np.full((h, w), np.nan)
     for it in range(0 if template else iterations):
         grow = iterations - 1 - it
         reg = np.array([max(r0 - grow * radius_y, 0), min(r1 + grow * radius_y, h),
@@ -877,11 +878,16 @@ def field_lsq(
     )
 
 
-def _box_mean(q: np.ndarray, weight: np.ndarray, rx: int, ry: int) -> np.ndarray:
-    """Mean of ``q`` over the ``weight`` pixels of the template's box around every pixel (NaN where none)."""
+def _box_count(weight: np.ndarray, rx: int, ry: int) -> np.ndarray:
+    """Share of the template's box around every pixel that is ``weight`` (the denominator of :func:`_box_mean`)."""
+    return uniform_filter(weight.astype(np.float64), size=(2 * ry + 1, 2 * rx + 1), mode="constant")
+
+
+def _box_mean(q: np.ndarray, weight: np.ndarray, den: np.ndarray, rx: int, ry: int) -> np.ndarray:
+    """Mean of ``q`` over the ``weight`` pixels of the template's box around every pixel (NaN where none);
+    ``den`` is :func:`_box_count` of ``weight``."""
     size = (2 * ry + 1, 2 * rx + 1)
     num = uniform_filter(np.where(weight, q, 0.0), size=size, mode="constant")
-    den = uniform_filter(weight.astype(np.float64), size=size, mode="constant")
     # uniform_filter's running sums leave rounding of ~1e-16 where the box holds no weight
     return np.where(den > 0.5 / (size[0] * size[1]), num / np.maximum(den, 1e-300), np.nan)
 
@@ -901,14 +907,15 @@ def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill,
     tgy, tgx = np.gradient(t)
     cols = np.arange(w)[None, :]
     rows = np.arange(h)[:, None]
+    den = _box_count(weight, rx, ry)  # the eligible pixels do not change between rounds
     for it in range(iterations):
         grow = 2 * (iterations - 1 - it)
         reg = np.array([max(r0 - grow * ry, 0), min(r1 + grow * ry, h),
                         max(c0 - grow * rx, 0), min(c1 + grow * rx, w)], dtype=np.int64)
         warp = np.array([max(reg[0] - ry, 0), min(reg[1] + ry, h), max(reg[2] - rx, 0), min(reg[3] + rx, w)],
                         dtype=np.int64)
-        sx = cols + _box_mean(px - cols, weight, rx, ry)
-        sy = rows + _box_mean(py - rows, weight, rx, ry)
+        sx = cols + _box_mean(px - cols, weight, den, rx, ry)
+        sy = rows + _box_mean(py - rows, weight, den, rx, ry)
         _warp(d, sx, sy, warp, iw, gxw, gyw)
         _solve_window(t, iw, tgx, tgy, iw, iw, sx, sy, 0.0, 0.0, weight, reg, rx, ry, min_fill, it == iterations - 1,
                       True, sol, stats)
