@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Callable
+from typing import Any
 
+import dask
 import numpy as np
 import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
@@ -239,12 +242,18 @@ def ingest(
     return _reopen(scene, out, tile)
 
 
-def ingest_scenes(scenes: list[xr.DataArray], outs: list[str], *, tile: int, client=None) -> list[xr.DataArray]:
+def ingest_scenes(scenes: list[xr.DataArray], outs: list[str], *, tile: int, client=None,
+                  reduce: list[Callable[[xr.DataArray], Any] | None] | None = None) -> list[xr.DataArray]:
     """Write several scenes to their Zarr stores in one graph (:func:`ingest`'s layout), in place.
 
     For a job that records completion itself: the stores are written where they are named,
     without :func:`ingest`'s temporary name and checks of ``out``. All chunks of all scenes
     are one Dask computation, so the scenes are read and written in parallel.
+
+    ``reduce`` (one per scene, or None) maps a scene's image as it is written (a lazy
+    ``(band, y, x)`` float32 DataArray) to lazy figures of it (statistics, an overview) that
+    are computed in the same graph, so the source is read once for both; their values are
+    the ``attrs["reduced"]`` of the returned scene.
 
     Returns the scenes re-opened from their stores, chunked by ``tile``.
 
@@ -254,8 +263,12 @@ def ingest_scenes(scenes: list[xr.DataArray], outs: list[str], *, tile: int, cli
         If a scene cannot be read (named).
     """
     outs = [storage.normalize(o) for o in outs]
-    _write_stores(scenes, outs, outs, tile=tile, client=client)
-    return [_reopen(scene, out, tile) for scene, out in zip(scenes, outs)]
+    values = _write_stores(scenes, outs, outs, tile=tile, client=client, reduce=reduce)
+    reopened = [_reopen(scene, out, tile) for scene, out in zip(scenes, outs)]
+    for scene, value, f in zip(reopened, values, reduce or [None] * len(scenes)):
+        if f is not None:
+            scene.attrs["reduced"] = value
+    return reopened
 
 
 def _reopen(scene: xr.DataArray, out: str, tile: int) -> xr.DataArray:
@@ -281,19 +294,29 @@ def _scene_dataset(scene: xr.DataArray, tile: int) -> xr.Dataset:
     return pixel_grid(ds)
 
 
-def _write_stores(scenes: list[xr.DataArray], paths: list[str], outs: list[str], *, tile: int, client=None) -> None:
-    """Write every scene to its path in one computation; errors name the scene (or ``outs``' store)."""
-    delayed = [_scene_dataset(scene, tile).to_zarr(path, mode="w", zarr_format=3, consolidated=False, compute=False)
-               for scene, path in zip(scenes, paths)]
+def _write_stores(scenes: list[xr.DataArray], paths: list[str], outs: list[str], *, tile: int, client=None,
+                  reduce: list[Callable[[xr.DataArray], Any] | None] | None = None) -> list:
+    """Write every scene to its path in one computation; errors name the scene (or ``outs``' store).
+
+    Returns ``reduce[i]`` of every scene's written image, computed in the same graph (None
+    where there is none).
+    """
+    datasets = [_scene_dataset(scene, tile) for scene in scenes]
+    reduce = reduce or [None] * len(scenes)
+    # one delayed per scene: its write and its reductions, computed in one graph, so they share the reads
+    delayed = [dask.delayed(_written_and_reduced, pure=False)(
+        ds.to_zarr(path, mode="w", zarr_format=3, consolidated=False, compute=False), None if f is None else f(ds[IMAGE_VAR]))
+        for ds, path, f in zip(datasets, paths, reduce)]
     if client is not None:
         futures = client.compute(delayed)
         results = [(f, None) for f in futures]
     else:
         results = [(None, d) for d in delayed]
+    values = []
     try:
         for (future, task), scene, out in zip(results, scenes, outs):
             try:
-                future.result() if future is not None else task.compute()
+                values.append(future.result() if future is not None else task.compute())
             except Exception as exc:
                 failure = as_environment_failure(exc, out)
                 if failure is not None:
@@ -306,6 +329,11 @@ def _write_stores(scenes: list[xr.DataArray], paths: list[str], outs: list[str],
         for future, _ in results:
             if future is not None:
                 future.cancel()
+    return values
+
+
+def _written_and_reduced(written: Any, reduced: Any) -> Any:
+    return reduced
 
 
 class WindowReader:

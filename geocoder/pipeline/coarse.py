@@ -23,6 +23,12 @@ def overview(image: xr.DataArray, factor: int) -> xr.DataArray:
     return image.coarsen(y=factor, x=factor, boundary="trim").mean()  # NaN-aware by default for floats
 
 
+def overview_factor(base: xr.DataArray, dist: xr.DataArray, max_size: int = 512) -> int:
+    """The pyramid factor of the coarse alignment: the overviews' larger side at most ``max_size``."""
+    largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
+    return max(1, math.ceil(largest / max_size))
+
+
 def georeference_prior(base: xr.DataArray, dist: xr.DataArray) -> np.ndarray | None:
     """Affine base pixel -> distorted pixel implied by both georeferences (or None).
 
@@ -112,20 +118,22 @@ def submit_coarse_alignment(
     max_size: int = 512,
     use_georeference: bool = True,
     prior: np.ndarray | None = None,
+    overviews: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PendingAlignment:
     """:func:`coarse_alignment` started on the cluster; the caller goes on meanwhile.
 
     Parameters and result as :func:`coarse_alignment` (through
-    :meth:`PendingAlignment.result`). Without a distributed client the alignment is computed
-    before this returns.
+    :meth:`PendingAlignment.result`). ``overviews``: the two scenes' overviews at
+    :func:`overview_factor` when the caller has them already (e.g. made while the scenes were
+    ingested), else they are made from the scenes. Without a distributed client the alignment
+    is computed before this returns.
     """
     dist_band = band if dist_band is None else dist_band
-    largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
-    factor = max(1, math.ceil(largest / max_size))
+    factor = overview_factor(base, dist, max_size)
     if prior is None and use_georeference:
         prior = georeference_prior(base, dist)
     # one graph: the overviews and the alignment on them run on the cluster, not the client
-    ob, od = (overview(s.isel(band=b), factor).data for s, b in ((base, band), (dist, dist_band)))
+    ob, od = overviews or (overview(s.isel(band=b), factor).data for s, b in ((base, band), (dist, dist_band)))
     task = dask.delayed(_align, pure=True)(ob, od, factor, prior)
     client = current_client()
     if client is not None:

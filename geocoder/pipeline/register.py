@@ -12,8 +12,10 @@ import logging
 import os
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
+from typing import Any
 
 import dask
 import dask.array as da
@@ -39,7 +41,7 @@ from ..runtime import dask_client
 from ..scene import WindowReader, ingest_scenes, open_scene
 from ..status import Status
 from ..tiles import TileGrid
-from .coarse import submit_coarse_alignment
+from .coarse import overview, overview_factor, submit_coarse_alignment
 from .correspond import fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points_many
@@ -202,12 +204,15 @@ def find_tiepoints(
     job: Job | None = None,
     prior: np.ndarray | None = None,
     points: tuple[InterestPoints, InterestPoints] | None = None,
+    overviews: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[TiePoints, PolyMap, CoarseAlignment]:
     """Coarse alignment, interest points and correspondence passes; gathered tie points.
 
     ``prior`` (2x3 affine base pixel -> distorted pixel) replaces the georeference as the
     start of the coarse alignment; ``points`` are the interest points of both scenes when
-    they are known already (a scene in several pairs is searched once).
+    they are known already (a scene in several pairs is searched once); ``overviews`` those
+    the coarse alignment runs on, when made already (see
+    :func:`geocoder.pipeline.coarse.submit_coarse_alignment`).
     """
     def cached(stage, make):
         return make() if job is None else job.cached(stage, make)
@@ -219,7 +224,7 @@ def find_tiepoints(
     pending = None
     if job is None or not job.done("coarse"):
         pending = submit_coarse_alignment(base, dist, band=band, dist_band=dband,
-                                          use_georeference=opts.use_georeference, prior=prior)
+                                          use_georeference=opts.use_georeference, prior=prior, overviews=overviews)
     try:
         with timer("interest points"):
             if points is None:
@@ -409,15 +414,28 @@ def register(
 
 def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSummary, timer, c, *, in_memory: bool):
     """The stages of :func:`register` inside a job; the dataset, its status counts and the tie points."""
+    band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
+    factor = overview_factor(bscene, dscene)
+
+    def figures(b: int) -> Callable[[xr.DataArray], tuple]:
+        # the content check's figures and the coarse alignment's overview of the matching band,
+        # made from the chunks as they are ingested (not by two more passes over the stores)
+        return lambda image: (*_band_statistics(image.data[b : b + 1]), overview(image.isel(band=b), factor).data)
+
     with timer("ingest"):
-        ingested = ingest_all(job, {"base": bscene, "distorted": dscene}, opts.tile, c)
+        ingested = ingest_all(job, {"base": bscene, "distorted": dscene}, opts.tile, c,
+                              reduce={"base": figures(band), "distorted": figures(dband)})
         bscene, dscene = ingested["base"], ingested["distorted"]
+    reduced = [s.attrs.pop("reduced", None) for s in (bscene, dscene)]
+    fresh = all(r is not None for r in reduced)
     if not job.done("content"):
-        _check_content([(bscene, opts.band), (dscene, opts.dist_band or opts.band)])
+        _check_content([(bscene, opts.band), (dscene, opts.dist_band or opts.band)],
+                       [r[:3] for r in reduced] if fresh else None)
         job.save("content")
     breader = WindowReader(job.file("base.zarr"))
     dreader = WindowReader(job.file("distorted.zarr"))
-    tp, mapping, coarse = find_tiepoints(bscene, dscene, breader, dreader, opts, summary, timer, job)
+    tp, mapping, coarse = find_tiepoints(bscene, dscene, breader, dreader, opts, summary, timer, job,
+                                         overviews=(reduced[0][3], reduced[1][3]) if fresh else None)
     chunks = bscene.data.chunks[1:]
     grid = TileGrid.from_chunks(chunks)
     dx, dy = polynomial_displacement(mapping, chunks)
@@ -470,12 +488,14 @@ def _check_size(scene: xr.DataArray) -> None:
         raise InputError(scene.attrs.get("source"), f"is {w} x {h} px; registration needs at least {MIN_SIDE} x {MIN_SIDE}")
 
 
-def _check_content(scenes: list[tuple[xr.DataArray, int]]) -> None:
+def _check_content(scenes: list[tuple[xr.DataArray, int]], figures: list[tuple] | None = None) -> None:
     """Refuse a matching band with fewer than ``MIN_SIDE**2`` valid pixels or one value only.
 
-    ``scenes`` are ``(scene, 1-based band)``; their figures are computed in one graph.
+    ``scenes`` are ``(scene, 1-based band)``; their figures (:func:`_band_statistics`) are
+    ``figures`` when known, else computed in one graph.
     """
-    figures = dask.compute(*(_band_statistics(scene.data[band - 1 : band]) for scene, band in scenes))
+    if figures is None:
+        figures = dask.compute(*(_band_statistics(scene.data[band - 1 : band]) for scene, band in scenes))
     for (scene, band), (n, lo, hi) in zip(scenes, figures):
         n, lo, hi = n[0], lo[0], hi[0]
         source = scene.attrs.get("source")
@@ -532,12 +552,17 @@ def _job_key(base, distorted, bscene, dscene, opts: RegisterOptions, nodata, dis
     )
 
 
-def ingest_all(job: Job, scenes: dict[str, xr.DataArray], tile: int, client) -> dict[str, xr.DataArray]:
+def ingest_all(job: Job, scenes: dict[str, xr.DataArray], tile: int, client,
+               reduce: dict[str, Callable[[xr.DataArray], Any]] | None = None) -> dict[str, xr.DataArray]:
     """Ingest the job's scenes (name -> scene) to ``NAME.zarr`` in its directory, all in one graph.
 
     A scene whose stage finished in an earlier run is re-opened, not written again.
+    ``reduce`` (name -> function of the image as written, see
+    :func:`geocoder.scene.ingest_scenes`) is computed in the same graph for the scenes written
+    now; its value is their ``attrs["reduced"]``.
     Returns the scenes re-opened from their stores, by name.
     """
+    reduce = reduce or {}
     out: dict[str, xr.DataArray] = {}
     todo = []
     for name, scene in scenes.items():
@@ -554,7 +579,8 @@ def ingest_all(job: Job, scenes: dict[str, xr.DataArray], tile: int, client) -> 
         bar = progress.current()
         bar.phase(f"ingest ({', '.join(name for name, *_ in todo)})", len(todo))
         # complete once each stage is saved
-        written = ingest_scenes([scene for _, scene, *_ in todo], [path for *_, path, _ in todo], tile=tile, client=client)
+        written = ingest_scenes([scene for _, scene, *_ in todo], [path for *_, path, _ in todo], tile=tile, client=client,
+                                reduce=[reduce.get(name) for name, *_ in todo])
         bar.advance(len(todo))
         bar.close()
         for (name, scene, _, ntiles), reopened in zip(todo, written):
