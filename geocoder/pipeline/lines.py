@@ -166,19 +166,23 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     holes = _hole_block(np.stack([dx, dy, px, py, status.astype(np.float32), sx, sy]).astype(np.float32),
                         max_hole=options.max_hole, edge=options.edge)
     t = table[:, :, 0].T  # (rows of the block, ROW_TABLE + FIT_TABLE)
-    dx, dy, sx, sy, status = _estimates(dx, dy, px, py, status, sx, sy, holes, t[:, : len(ROW_TABLE)], np.arange(a, b),
-                                        reach=options.max_hole, band=options.edge)
+    rows = t[:, : len(ROW_TABLE)]
+    # the lines' ends from the whole read; the rest only on the columns of the core and of its
+    # smoothing, whose estimates and shrinkage are exact
+    ends = _line_ends_xy(dx, dy, px, py, sx, sy, good, rows, np.arange(a, b), band=options.edge)
+    sa, sb = max(c0 - smooth, 0) - a, min(c1 + smooth, width) - a
+    w = (slice(None), slice(sa, sb))
+    dx, dy, px, py, status, sx, sy, rho = (v[w] for v in (dx, dy, px, py, status, sx, sy, rho))
+    cols = np.arange(a + sa, a + sb)
+    dx, dy, sx, sy, status = _estimates(dx, dy, px, py, status, sx, sy, holes[:, :, sa:sb], rows, cols, ends,
+                                        reach=options.max_hole)
     if shrink:
-        u = line_coordinate(np.arange(a, b), width)
+        u = line_coordinate(cols, width)
         dx, dy, sx, sy = shrink_block(dx, dy, px, py, status == Status.MATCHED, sx, sy, u, t[:, len(ROW_TABLE):])
-    if smooth:  # on the columns the smoothing reads, whose estimates and shrinkage are exact
-        sa, sb = max(c0 - smooth, 0) - a, min(c1 + smooth, width) - a
-        w = (slice(None), slice(sa, sb))
-        stack = np.stack([dx[w], dy[w], px[w], py[w], status[w].astype(np.float32), sx[w], sy[w]]).astype(np.float32)
-        sm = _smooth_block(stack, window=options.smooth, correlation=correlation)
-        for k, arr in enumerate((dx, dy, sx, sy)):
-            arr[w] = sm[k]
-    core = (slice(None), slice(c0 - a, c1 - a))
+    if smooth:
+        stack = np.stack([dx, dy, px, py, status.astype(np.float32), sx, sy]).astype(np.float32)
+        dx, dy, sx, sy = _smooth_block(stack, window=options.smooth, correlation=correlation)
+    core = (slice(None), slice(c0 - a - sa, c1 - a - sa))
     return np.stack([dx[core], dy[core], status[core].astype(np.float32), sx[core], sy[core], rho[core]]).astype(np.float32)
 
 
@@ -223,7 +227,16 @@ def _line_ends(res: np.ndarray, noise: np.ndarray, usable: np.ndarray, first: np
     return np.array(means), np.array(variances), np.array(noises)
 
 
-def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np.ndarray, *, reach: int, band: int):
+def _line_ends_xy(dx, dy, px, py, sx, sy, usable, rows: np.ndarray, cols: np.ndarray, *, band: int) -> list[tuple]:
+    """:func:`_line_ends` of the residuals in x and in y (``rows``: :data:`ROW_TABLE`)."""
+    first, last = rows.T[:2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return [_line_ends(d - p, sg.astype(np.float64) ** 2, usable, first, last, cols, band=band)
+                for d, p, sg in ((dx, px, sx), (dy, py, sy))]
+
+
+def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np.ndarray, ends: list[tuple], *,
+               reach: int):
     """Every unmatched pixel of a corrected row estimated (float32 ``dx, dy, sigma_x, sigma_y``, uint8 ``status``).
 
     Pixels flagged ``NO_TEXTURE`` or ``BLUNDER`` in a hole bounded by usable pixels on both
@@ -240,7 +253,8 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np
     0.06-0.1 with the end's. The ends' bands lie inside
     the columns :func:`line_field` reads (``max_hole + edge + 1`` each side), so the result
     does not depend on the tiling. ``rows`` is the :data:`ROW_TABLE` of the block's rows,
-    ``cols`` the block's columns.
+    ``cols`` the block's columns, ``ends`` the lines' ends (:func:`_line_ends_xy`, from all
+    the columns read: the bands may lie outside ``cols``).
     """
     def column(values: np.ndarray) -> np.ndarray:
         return np.asarray(values, np.float32)[:, None]
@@ -249,7 +263,6 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np
     within = (cols[None, :] >= column(np.nan_to_num(first, nan=np.inf))) & \
         (cols[None, :] <= column(np.nan_to_num(last, nan=-np.inf)))
     target = (status == Status.NO_TEXTURE) | (status == Status.BLUNDER)
-    usable = (status == Status.MATCHED) | (status == Status.FILLED)
     # a hole needs its ends' noise or its line's spread for a sigma
     known = (np.isfinite(holes[2]) & np.isfinite(holes[3])) | (column(np.isfinite(sgx) & np.isfinite(sgy)) > 0)
     by_hole = target & (holes[4] > 0) & known
@@ -259,8 +272,6 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, cols: np
     after = (c > np.nan_to_num(last, nan=np.inf)[:, None]) & (c <= np.nan_to_num(last, nan=-np.inf)[:, None] + reach)
     out = []
     with np.errstate(invalid="ignore", divide="ignore"):  # inf / inf where a line has no spread: not kept
-        ends = [_line_ends(d - p, sg.astype(np.float64) ** 2, usable, first, last, cols, band=band)
-                for d, p, sg in ((dx, px, sx), (dy, py, sy))]
         known_end = np.isfinite(ends[0][0]) & np.isfinite(ends[1][0])  # (2, h): left end, right end
         by_end = target & ~by_hole & ~by_line & ((before & known_end[0][:, None]) | (after & known_end[1][:, None]))
         for k, (d, p, corr, sig, s) in enumerate(((dx, px, cx, sgx, sx), (dy, py, cy, sgy, sy))):
