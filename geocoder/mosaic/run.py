@@ -33,7 +33,7 @@ import math
 import os
 import tempfile
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import dask
 import dask.array as da
@@ -61,6 +61,7 @@ from ..status import Status
 from ..tiles import TileGrid
 from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
+from .control import DEFAULT_SIGMA_PX, read_control
 from .dense_neighbours import refine_by_neighbours
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
 from .heights import MapDEM, ref_to_scene_prior
@@ -146,6 +147,15 @@ class MosaicSummary:
         Per block scene, how ``dense=True`` refined it: ``"reference"`` (a control scene, against
         the reference), ``"via i, j"`` (against its refined neighbours, scene indices;
         :mod:`geocoder.mosaic.dense_neighbours`) or ``"not"``. Empty without ``dense``.
+    given_file : str
+        The ``control`` CSV (empty without one).
+    given_points : list of int
+        Per scene, the CSV's control points the adjustment used (those withheld as check
+        points are counted in ``check_points``); empty without a CSV.
+    given_rmse_px : list of float
+        Per scene, the RMS residual (scene pixels) of those points: their measured pixel
+        against their map coordinates through the adjusted model (NaN without points or out
+        of the block).
     """
 
     scenes: list[str]
@@ -173,6 +183,9 @@ class MosaicSummary:
     job: dict = field(default_factory=dict)
     placed: dict = field(default_factory=dict)
     dense_refined: list[str] = field(default_factory=list)
+    given_file: str = ""
+    given_points: list[int] = field(default_factory=list)
+    given_rmse_px: list[float] = field(default_factory=list)
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -192,6 +205,8 @@ class MosaicSummary:
             "ground points by rays: " + ", ".join(f"{k}: {v}" for k, v in self.rays.items()),
             f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
             + ", ".join(f"{r:.3f}" for r in self.rms_px),
+            *([f"control points from {self.given_file}: {sum(self.given_points)} used, per scene {self.given_points}, "
+               "RMS residual per scene (px) " + ", ".join(f"{r:.3f}" for r in self.given_rmse_px)] if self.given_file else []),
             *([f"check points (withheld): {sum(self.check_points)}, RMS residual per scene (px) "
                + ", ".join(f"{r:.3f}" for r in self.check_rmse_px)] if sum(self.check_points) else []),
             *([f"radiometric balance: grey-value step at the tie points {self.seam_step[0]:.3g} before, "
@@ -422,6 +437,7 @@ def mosaic(
     output_tile: int | None = None,
     control_scenes: list[int] | None = None,
     check_points: float = 0.0,
+    control: str | os.PathLike | None = None,
     feather: float = 8.0,
     seams: str = "least-cost",
     resampling: str = "bilinear",
@@ -466,11 +482,24 @@ def mosaic(
         depend on it (to rounding): the seams are decided on a coarse grid, not per tile.
     control_scenes : list of int, optional
         Scenes whose reference matches serve as control points (default all); the others
-        are placed by tie points only (sparse control).
+        are placed by tie points only (sparse control). The ``control`` CSV's points count
+        whatever this says: ``control_scenes=[]`` with a CSV is control given by hand only.
     check_points : float
         Share of every control scene's control points withheld from the adjustment as check
         points (every n-th; 0: none): their residuals through the adjusted models are the
-        summary's ``check_rmse_px``, an accuracy the adjustment did not see.
+        summary's ``check_rmse_px``, an accuracy the adjustment did not see. The ``control``
+        CSV's points are withheld the same way, scene by scene.
+    control : str or PathLike, optional
+        Ground control points measured by hand: a CSV with a header and the columns
+        ``scene`` (0-based index in ``scenes``, or the scene's file name), ``col``, ``row``
+        (pixel in that scene, pixel centres at integers: the top-left pixel's centre is
+        ``0, 0``), ``x``, ``y`` (map coordinates in the reference's CRS), optionally
+        ``sigma`` (standard deviation of ``x`` and ``y``, map units; default half the
+        reference's pixel) and ``id``. Each point is a control point of the block adjustment
+        beside the reference's matches (the scene pixel observed with a precision of 0.3 px,
+        :mod:`geocoder.mosaic.control`). A malformed file raises
+        :class:`~geocoder.errors.InputError` naming the file, line and column before any
+        work. The summary's ``given_points`` and ``given_rmse_px`` report them.
     feather : float
         Width of the blend across a seam, in output pixels.
     seams : {"least-cost", "centre"}
@@ -577,6 +606,11 @@ def mosaic(
                      overwrite=overwrite, option="report")
     ref = open_scene(reference, chunks=tile, grid=True)
     opened = [open_scene(s, chunks=tile) for s in scenes]
+    given = None
+    if control is not None:  # read and checked now, before any work
+        pixel = math.sqrt(abs((scene_transform(ref) or Affine.identity()).determinant))
+        given = read_control(control, list(scenes), [(s.sizes["y"], s.sizes["x"]) for s in opened],
+                             default_sigma=DEFAULT_SIGMA_PX * pixel)
     # what every scene carries (its footprint; the model when asked for): refused now, naming the scene
     carried = [scene_sensor(s, model) if model != "polynomial" else _carried(s) for s in scenes]
     if model != "polynomial" and not ref.attrs.get("georeferenced"):
@@ -596,7 +630,8 @@ def mosaic(
     key = fingerprint(scenes=[input_identity(s) for s in scenes], reference=input_identity(reference),
                       dem=None if dem is None else input_identity(dem), options=repr(opts), output_tile=output_tile,
                       control=sorted(allowed), check_points=check_points, feather=feather, seams=seams, resampling=resampling, balance=balance,
-                      dense=dense, model=model, version=__version__)
+                      dense=dense, model=model, version=__version__,
+                      **({} if given is None else {"given": [input_identity(control), given.digest]}))
     job = open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     if job.resumed:
         log.info("resuming the job in %s", job.path)
@@ -647,6 +682,9 @@ def mosaic(
                     control.append(Matches(-1, k, np.column_stack([ex, ny]), np.column_stack([tp.dist_x, tp.dist_y]),
                                            np.column_stack([tp.sigma_x, tp.sigma_y])))
         summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
+        if given is not None:  # the CSV's points: control observations as the reference's matches are
+            control.extend(given.matches(len(opened)))
+            summary.given_file = given.path
         placement = Placement()
         if missed and ref_to:
             with timer("placement by neighbours"):
@@ -692,7 +730,7 @@ def mosaic(
         with timer("block adjustment"):
             problem = build_problem(
                 [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
-                [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in used if m.j in index],
+                [replace(m, j=index[m.j]) for m in used if m.j in index],
                 [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
                 order=order, height=heights,
                 models=None if model == "polynomial" else [(sensors[k], sensors[k].initial_params()) for k in block],
@@ -706,6 +744,9 @@ def mosaic(
         models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
         if check_points:
             summary.check_points, summary.check_rmse_px = _check_residuals(checks, models, index, len(opened), heights)
+        if given is not None:
+            summary.given_points, summary.given_rmse_px = _check_residuals(
+                [m for m in used if m.ground_sigma is not None], models, index, len(opened), heights)
         for n, k in enumerate(block):
             if k in placement.via:  # its footprint from its adjusted model, not the overlap's extrapolation
                 to_ref[k], ref_to[k] = footprint_from_model(*models[n], transform, to_ref[k], shapes[k], heights)
@@ -716,7 +757,7 @@ def mosaic(
             with timer("radiometric balance"):
                 gains, summary.seam_step = _balance(
                     [readers[k] for k in block], ref_reader, transform, tile,
-                    [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
+                    [replace(m, j=index[m.j]) for m in control if m.j in index],
                     [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
                     nbands)
         ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], output_tile,
@@ -847,8 +888,9 @@ def _withhold(control: list, share: float) -> tuple[list, list]:
     used, checks = [], []
     for m in control:
         keep = np.arange(len(m)) % n != n - 1
-        used.append(Matches(m.i, m.j, m.a[keep], m.b[keep], m.sigma[keep]))
-        checks.append(Matches(m.i, m.j, m.a[~keep], m.b[~keep], m.sigma[~keep]))
+        for part, sel in ((used, keep), (checks, ~keep)):
+            part.append(replace(m, a=m.a[sel], b=m.b[sel], sigma=m.sigma[sel],
+                                ground_sigma=None if m.ground_sigma is None else m.ground_sigma[sel]))
     return used, checks
 
 
