@@ -95,3 +95,92 @@ def test_cli_malformed_csv_exits_2_without_traceback(files, tmp_path):
     assert r.returncode == 2, r.stderr
     assert f"{csv}: line 2, column 'x': 'east' is not a finite number" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr and not (tmp_path / "m.zarr").exists()
+
+
+@pytest.fixture(scope="module")
+def default_pair(files, client):
+    """Scenes 0 and 1 on the reference's grid (today's output): what the other grids are compared with."""
+    d, paths = files
+    return mosaic(paths[:2], reference=d / "ortho.tif", tile=128, client=client)
+
+
+def truth_error(ds) -> np.ndarray:
+    """Per covered output pixel, its distance (output pixels) from where the simulator's truth puts
+    the scene position the mosaic sampled there (through the output's CRS); NaN elsewhere."""
+    from pyproj import Transformer
+
+    from geocoder.geometry import world_to_pixel
+    from geocoder.mosaic import scene_positions
+
+    scenes = [SCENES[int(s.rsplit("scene", 1)[1][0])] for s in json.loads(ds.attrs["scenes"])]
+    to_out = Transformer.from_crs("EPSG:32633", ds.rio.crs, always_xy=True)
+    src = ds.source.values
+    rows, cols = np.indices(src.shape)
+    err = np.full(src.shape, np.nan)
+    for n, ((x, y), scene) in enumerate(zip(scene_positions(ds, "unused: no dense fields"), scenes)):
+        sel = src == n
+        c, r = world_to_pixel(ds.rio.transform(), *to_out.transform(*pixel_to_world(ORTHO, *scene.to_ortho(x[sel], y[sel]))))
+        err[sel] = np.hypot(c - cols[sel], r - rows[sel])
+    return err
+
+
+def grey_difference(ds, default) -> np.ndarray:
+    """``ds``'s mosaic minus ``default``'s interpolated (bilinear) at the same ground points, where both have data."""
+    from pyproj import Transformer
+    from scipy.ndimage import map_coordinates
+
+    from geocoder.geometry import world_to_pixel
+
+    e, n = np.meshgrid(ds.x.values, ds.y.values)
+    e, n = Transformer.from_crs(ds.rio.crs, default.rio.crs, always_xy=True).transform(e, n)
+    c, r = world_to_pixel(default.rio.transform(), e, n)
+    v = map_coordinates(default.mosaic.values[0], [r, c], order=1, cval=np.nan)
+    d = ds.mosaic.values[0] - v
+    return d[np.isfinite(d)]
+
+
+def test_resolution_twice_the_reference_pixel(files, client, default_pair):
+    d, paths = files
+    ds = mosaic(paths[:2], reference=d / "ortho.tif", tile=128, client=client, resolution=4.0)
+    t = ds.rio.transform()
+    assert (t.a, t.e) == (4.0, -4.0) and t.c % 4 == 0 and t.f % 4 == 0 and ds.rio.crs == default_pair.rio.crs
+    assert all(abs(2 * a - b) <= 2 for a, b in zip(ds.mosaic.shape[1:], default_pair.mosaic.shape[1:]))
+    err = truth_error(ds)
+    rmse = float(np.sqrt(np.nanmean(err**2)))
+    diff = grey_difference(ds, default_pair)
+    std = float(np.nanstd(default_pair.mosaic.values))
+    print("default grid: RMSE against truth (output px)", float(np.sqrt(np.nanmean(truth_error(default_pair) ** 2))))
+    print("resolution 4 m: RMSE against truth (output px)", rmse, "grey difference RMS / std", np.sqrt(np.mean(diff**2)) / std,
+          "pixels", diff.size)
+    assert np.isfinite(err).mean() > 0.5 and rmse < 0.03  # measured 0.005 (4 m), 0.010 (zone 34); the default grid's 0.01
+    assert diff.size > 0.5 * ds.mosaic.shape[1] * ds.mosaic.shape[2]
+    assert np.sqrt(np.mean(diff**2)) < 0.08 * std  # measured 0.039 (4 m), 0.029 (zone 34): interpolated twice
+
+
+def test_crs_utm_zone_next_door(files, client, default_pair, tmp_path):
+    import rasterio
+    import rioxarray  # noqa: F401 (the .rio accessor)
+    import xarray as xr
+
+    d, paths = files
+    out, cog = tmp_path / "m34.zarr", tmp_path / "m34.tif"
+    mosaic(paths[:2], reference=d / "ortho.tif", out=out, tile=128, client=client, crs="EPSG:32634", cog=cog)
+    ds = xr.open_zarr(out, decode_coords="all", consolidated=False)
+    assert ds.rio.crs.to_epsg() == 32634 and "models_crs" in ds.attrs
+    with rasterio.open(cog) as f:
+        assert f.crs.to_epsg() == 32634 and f.transform == ds.rio.transform()
+    # the reference's 2 m pixel measured in zone 34, 6 degrees of longitude west of its meridian (scale 1.002)
+    from pyproj import Proj, Transformer
+
+    lon, lat = Transformer.from_crs("EPSG:32633", "EPSG:4326", always_xy=True).transform(500768.0, 5799232.0)
+    k33, k34 = (Proj(f"EPSG:{z}").get_factors(lon, lat).areal_scale for z in (32633, 32634))
+    assert abs(ds.rio.transform().a - 2.0 * np.sqrt(k34 / k33)) < 1e-4, (ds.rio.transform().a, k33, k34)
+    err = truth_error(ds)
+    rmse = float(np.sqrt(np.nanmean(err**2)))
+    diff = grey_difference(ds, default_pair)
+    std = float(np.nanstd(default_pair.mosaic.values))
+    print("EPSG:32634: RMSE against truth (output px)", rmse, "grey difference RMS / std", np.sqrt(np.mean(diff**2)) / std,
+          "pixels", diff.size)
+    assert np.isfinite(err).mean() > 0.5 and rmse < 0.03  # measured 0.005 (4 m), 0.010 (zone 34); the default grid's 0.01
+    assert diff.size > 0.5 * ds.mosaic.shape[1] * ds.mosaic.shape[2]
+    assert np.sqrt(np.mean(diff**2)) < 0.08 * std  # measured 0.039 (4 m), 0.029 (zone 34): interpolated twice
