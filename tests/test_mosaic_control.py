@@ -18,7 +18,7 @@ from test_mosaic import ORTHO, SCENES, SIZE, block, errors  # noqa: F401 (the mo
 
 from geocoder.errors import InputError
 from geocoder.geometry import pixel_to_world
-from geocoder.mosaic import mosaic
+from geocoder.mosaic import MosaicSummary, mosaic
 
 pytestmark = pytest.mark.cluster
 
@@ -60,6 +60,7 @@ def test_csv_control_alone_places_the_block(files, client, tmp_path):
     assert s["left_out"] == {} and s["control_points"] == [0, 0, 0, 0]
     assert s["given_file"] == str(csv) and s["given_points"] == [5, 5, 5, 5] and s["check_points"] == [1, 1, 1, 1]
     assert all(r < 0.1 for r in s["given_rmse_px"]) and all(r < 0.1 for r in s["check_rmse_px"])
+    assert any(line.startswith(f"control points from {csv}: 20 used") for line in MosaicSummary(**s).lines())
     own, seam = errors(ds)
     rmse = float(np.sqrt(np.nanmean(own**2)))
     print("RMSE against truth (output px)", rmse, "max", np.nanmax(own), "seam", float(np.sqrt(np.mean(seam**2))))
@@ -95,6 +96,21 @@ def test_cli_malformed_csv_exits_2_without_traceback(files, tmp_path):
     assert r.returncode == 2, r.stderr
     assert f"{csv}: line 2, column 'x': 'east' is not a finite number" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr and not (tmp_path / "m.zarr").exists()
+    r = subprocess.run([sys.executable, "-m", "geocoder.cli", "-q", "mosaic", *map(str, paths), "--reference",
+                        str(d / "ortho.tif"), "--out", str(tmp_path / "m.zarr"), "--crs", "EPSG:999999"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "'EPSG:999999' is not a coordinate reference system" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_grid_options_refused_where_they_cannot_work(files):
+    d, paths = files
+    with pytest.raises(ValueError, match="dense refinement needs the reference's grid"):
+        mosaic(paths, reference=d / "ortho.tif", resolution=4.0, dense=True)
+    with pytest.raises(ValueError, match="resolution must be a positive number"):
+        mosaic(paths, reference=d / "ortho.tif", resolution=0.0)
+    with pytest.raises(InputError, match="is not georeferenced"):  # a scene without georeference as the reference
+        mosaic(paths[1:], reference=paths[0], crs="EPSG:3857")
 
 
 @pytest.fixture(scope="module")

@@ -769,6 +769,7 @@ def mosaic(
                                     np.column_stack([tp.sigma_x, tp.sigma_y])))
                 summary.pairs.append({"i": i, "j": j, "ties": len(tp), "overlap": round(overlaps[i, j], 3)})
         ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
+        ok &= np.array([k in to_ref for k in range(len(opened))], dtype=bool)  # CSV points do not place a scene
         for k in range(len(opened)):
             if not ok[k] and str(k) not in summary.left_out:
                 summary.left_out[str(k)] = "tied to no control point (no overlap with a controlled scene)"
@@ -968,7 +969,10 @@ def _check_residuals(checks: list, models: list, index: dict, nscenes: int, heig
 
 
 def _footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], margin: int = 16) -> tuple[int, int, int, int]:
-    """``row0, row1, col0, col1`` (output pixels) around a scene's footprint, grown by ``margin``."""
+    """``row0, row1, col0, col1`` (output pixels) around a scene's footprint, grown by ``margin``.
+
+    ``to_ref``: scene pixel -> reference pixel, ``origin`` the output's pixel (0, 0) there; or
+    scene pixel -> output pixel directly, with ``origin = (0, 0)``."""
     h, w = shape
     t = np.linspace(0.0, 1.0, 17)
     xs = np.concatenate([t * (w - 1), np.full(17, w - 1.0), t * (w - 1), np.zeros(17)])
