@@ -200,3 +200,22 @@ def test_crs_utm_zone_next_door(files, client, default_pair, tmp_path):
     assert np.isfinite(err).mean() > 0.5 and rmse < 0.03  # measured 0.005 (4 m), 0.010 (zone 34); the default grid's 0.01
     assert diff.size > 0.5 * ds.mosaic.shape[1] * ds.mosaic.shape[2]
     assert np.sqrt(np.mean(diff**2)) < 0.08 * std  # measured 0.039 (4 m), 0.029 (zone 34): interpolated twice
+
+
+def test_changed_csv_is_not_resumed(files, client, tmp_path):
+    """A job killed part-way with one CSV, re-run with the CSV edited in place (same size): the job
+    key holds the file's digest, so nothing of the killed job is reused."""
+    from test_mosaic_resume import TILE, run_and_kill
+
+    d, paths = files
+    csv = tmp_path / "gcp.csv"
+    rows = truth_rows(scenes=(0, 1))
+    write_csv(csv, rows)
+    args = [*paths[:2], "--reference", d / "ortho.tif", "--tile", TILE, "--control", csv, "--scheduler", client.scheduler.address]
+    first = run_and_kill(args, tmp_path, "tiles/*/*.pkl")
+    rows[0][4] = rows[0][4][:-1] + ("1" if rows[0][4][-1] != "1" else "2")  # 0.1 mm east: same size, other content
+    write_csv(csv, rows)
+    ds = mosaic(paths[:2], reference=d / "ortho.tif", out=tmp_path / "m.zarr", tile=TILE, client=client, control=csv,
+                overwrite=first.returncode == 0)
+    s = json.loads(ds.attrs["summary"])
+    assert not s["job"]["resumed"] and s["job"]["skipped"] == 0 and s["given_points"] == [6, 6]
