@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from test_mosaic import ORTHO, SCENES, SIZE, block, errors  # noqa: F401 (the module's fixture: the block's files)
 
-from geocoder.errors import InputError
+from geocoder.errors import GeocoderError, InputError
 from geocoder.geometry import pixel_to_world
 from geocoder.mosaic import MosaicSummary, mosaic
 
@@ -101,6 +101,15 @@ def test_cli_malformed_csv_exits_2_without_traceback(files, tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "'EPSG:999999' is not a coordinate reference system" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_output_over_the_csv_is_refused(files, tmp_path):
+    d, paths = files
+    csv = tmp_path / "gcp.csv"
+    write_csv(csv, truth_rows())
+    with pytest.raises(GeocoderError, match="is also an input of this job"):
+        mosaic(paths, reference=d / "ortho.tif", out=csv, control=csv, overwrite=True)
+    assert csv.read_text().startswith("id,scene,col,row,x,y")
 
 
 def test_grid_options_refused_where_they_cannot_work(files):

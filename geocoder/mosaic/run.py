@@ -642,15 +642,16 @@ def mosaic(
     if output_tile < 16 or output_tile % 16:
         raise ValueError(f"output_tile must be a multiple of 16, got {output_tile}")
     opts.validate()
+    extra = [control] if control is not None else []  # the CSV is never written over either
     if out is not None:
-        out = check_output(out, inputs=(*scenes, reference), overwrite=overwrite)
+        out = check_output(out, inputs=(*scenes, reference, *extra), overwrite=overwrite)
     if cog is not None:  # refused now, not after the job
-        check_output(cog, inputs=(*scenes, reference, *([out] if out is not None else [])), overwrite=overwrite)
+        check_output(cog, inputs=(*scenes, reference, *extra, *([out] if out is not None else [])), overwrite=overwrite)
     if report is not None:
         from ..reporting import require_matplotlib
 
         require_matplotlib()
-        check_output(report, inputs=(*scenes, reference, *([out] if out is not None else []), *([cog] if cog else [])),
+        check_output(report, inputs=(*scenes, reference, *extra, *([out] if out is not None else []), *([cog] if cog else [])),
                      overwrite=overwrite, option="report")
     ref = open_scene(reference, chunks=tile, grid=True)
     opened = [open_scene(s, chunks=tile) for s in scenes]
