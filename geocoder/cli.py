@@ -289,7 +289,8 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
 
 @main.command()
 @click.argument("scenes", nargs=-1, required=True)
-@click.option("--reference", required=True, help="Orthoimage: the mosaic's CRS and pixel, and the source of control points.")
+@click.option("--reference", required=True,
+              help="Orthoimage: the source of control points, and the mosaic's CRS and pixel unless --crs/--resolution say otherwise.")
 @click.option("--out", required=True, help="Output Zarr store (committed atomically).")
 @click.option("--order", default=2, show_default=True, type=click.IntRange(1, 3), help="Polynomial order of every scene's model.")
 @click.option("--control-scenes", default=None,
@@ -313,13 +314,20 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
 @click.option("--dem", default=None, help="DEM (m): ground heights of the points and of every output pixel (default 0).")
 @click.option("--check-points", default=0.0, show_default=True, type=click.FloatRange(0.0, 1.0, max_open=True),
               help="Share of the control points withheld from the adjustment as check points (reported).")
+@click.option("--control", "control_csv", default=None, type=click.Path(dir_okay=False),
+              help="Ground control points measured by hand: CSV with columns scene, col, row, x, y [, sigma, id] "
+                   "(scene: 0-based index or file name; col/row: scene pixel, centres at integers; x/y: reference CRS).")
+@click.option("--resolution", default=None, type=click.FloatRange(min=0, min_open=True),
+              help="Output pixel size in units of the output CRS (default: the reference's pixel grid).")
+@click.option("--crs", "out_crs", default=None,
+              help="Output CRS, e.g. EPSG:32634 (default the reference's); the pixel defaults to the reference's, measured in it.")
 @click.option("--restart", is_flag=True, help="Do not resume an interrupted run of the same job; start afresh.")
 @tile_option
 @overwrite_option
 @scheduler_option
 @_friendly
 def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, resampling, balance, cog, dense, report, model,
-           dem, check_points, restart, tile, overwrite, scheduler):
+           dem, check_points, control_csv, resolution, out_crs, restart, tile, overwrite, scheduler):
     """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
     from .mosaic import MosaicSummary
     from .mosaic import mosaic as run
@@ -344,7 +352,7 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, re
     ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
              feather=feather, seams=seam_mode, resampling=resampling, balance=balance, scheduler=scheduler,
              overwrite=overwrite, cog=cog, dense=dense, model=model, dem=dem, report=report, resume=not restart,
-             check_points=check_points)
+             check_points=check_points, control=control_csv, resolution=resolution, crs=out_crs)
     import json
 
     for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():

@@ -27,6 +27,8 @@ class Matches:
     ``sigma`` is the matching precision ``(sigma_x, sigma_y)`` in pixels of scene ``j`` (and
     ``i``): the standard deviations of the least-squares match (its covariance has no
     ``x``/``y`` correlation term in :class:`~geocoder.match.tiepoints.TiePoints`).
+    ``ground_sigma`` (control points only, ``(n,)``, map units): the standard deviation of
+    each point's map coordinates; None: the problem's ``control_sigma``.
     """
 
     i: int
@@ -34,13 +36,20 @@ class Matches:
     a: np.ndarray  # (n, 2)
     b: np.ndarray  # (n, 2)
     sigma: np.ndarray  # (n, 2)
+    ground_sigma: np.ndarray | None = None  # (n,)
 
     def __len__(self) -> int:
         return len(self.sigma)
 
 
-def connected_scenes(n: int, control: list[Matches], ties: list[Matches], *, min_points: int) -> np.ndarray:
-    """Scenes tied, directly or through neighbours, to a scene with enough control points."""
+def connected_scenes(n: int, control: list[Matches], ties: list[Matches], *, min_points: int,
+                     min_given: int = 3) -> np.ndarray:
+    """Scenes tied, directly or through neighbours, to a scene with enough control points.
+
+    A reference match set anchors its scene's group with ``min_points`` points; points given
+    by hand (matches with a ``ground_sigma``) with ``min_given`` in the whole group (three
+    points fix a plane's position, scale and rotation; the ties carry the rest).
+    """
     parent = list(range(n))
 
     def root(k: int) -> int:
@@ -52,7 +61,12 @@ def connected_scenes(n: int, control: list[Matches], ties: list[Matches], *, min
     for t in ties:
         if len(t) >= min_points:
             parent[root(t.i)] = root(t.j)
-    anchored = {root(c.j) for c in control if len(c) >= min_points}
+    anchored = {root(c.j) for c in control if c.ground_sigma is None and len(c) >= min_points}
+    given = np.zeros(n, dtype=np.int64)
+    for c in control:
+        if c.ground_sigma is not None:
+            given[root(c.j)] += len(c)
+    anchored |= {k for k in range(n) if given[k] >= min_given}
     return np.array([root(k) in anchored for k in range(n)], dtype=bool)
 
 
@@ -86,7 +100,8 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
         Polynomial order of every scene's model.
     control_sigma : float
         Standard deviation of the control points' map coordinates (map units; the
-        reference's pixels are the truth here, their matching error is in the scenes).
+        reference's pixels are the truth here, their matching error is in the scenes), for
+        the matches without their own ``ground_sigma``.
     min_sigma : float
         Floor of the matching sigmas (pixels) in the observation weights.
     models : list of (model, params), optional
@@ -117,7 +132,13 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
     for c in control:
         m = len(c)
         ground.append(np.column_stack([c.a, heights(c.a[:, 0], c.a[:, 1])]))
-        gweight.append(np.broadcast_to(np.diag([wxy, wxy, wxy]), (m, 3, 3)))
+        if c.ground_sigma is None:
+            gweight.append(np.broadcast_to(np.diag([wxy, wxy, wxy]), (m, 3, 3)))
+        else:  # the height as known as the reference's control (the DEM's); x, y as the point says
+            g = np.zeros((m, 3, 3))
+            g[:, 0, 0] = g[:, 1, 1] = 1.0 / np.asarray(c.ground_sigma, dtype=np.float64) ** 2
+            g[:, 2, 2] = wxy
+            gweight.append(g)
         ofr.append(np.full(m, c.j))
         opt.append(n + np.arange(m))
         oxy.append(c.b)

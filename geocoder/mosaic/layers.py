@@ -29,8 +29,8 @@ from __future__ import annotations
 import numpy as np
 from affine import Affine
 
-from ..geometry import pixel_to_world
 from ..status import Status
+from .outgrid import Reprojected, linear, to_map
 
 __all__ = ["NODE_STEP", "field_layers", "model_layers", "pixel_sigma", "scene_uncertainty"]
 
@@ -57,7 +57,7 @@ def _bilinear(values: np.ndarray, nodes_r: np.ndarray, nodes_c: np.ndarray, rows
             + fa * ((1 - fb) * values[..., A + 1, B] + fb * values[..., A + 1, B + 1]))
 
 
-def model_layers(model, params: np.ndarray, cov: np.ndarray | None, transform: Affine,
+def model_layers(model, params: np.ndarray, cov: np.ndarray | None, transform: Affine | Reprojected,
                  window: tuple[int, int, int, int], dem=None, unmodelled: np.ndarray | None = None, *,
                  step: int = NODE_STEP) -> tuple[np.ndarray, np.ndarray]:
     """Covariance of a scene's model position, and the Jacobian's inverse, at every pixel of a window.
@@ -71,8 +71,9 @@ def model_layers(model, params: np.ndarray, cov: np.ndarray | None, transform: A
     cov : ndarray, shape (n, n) or None
         Their covariance (``sigma0**2`` times the block of the inverse normal matrix); None:
         unknown (NaN covariances).
-    transform : affine.Affine
-        The output grid's transform (pixel corners).
+    transform : affine.Affine or Reprojected
+        The output grid (:mod:`geocoder.mosaic.outgrid`): its transform (pixel corners), or a
+        grid in another CRS than the models'.
     window : tuple of int
         ``row0, row1, col0, col1`` in output pixels.
     dem : callable, optional
@@ -94,19 +95,19 @@ def model_layers(model, params: np.ndarray, cov: np.ndarray | None, transform: A
     r0, r1, c0, c1 = window
     nr, nc = _nodes(r0, r1, step), _nodes(c0, c1, step)
     cols, rows = np.meshgrid(nc.astype(np.float64), nr.astype(np.float64))
-    e, n = pixel_to_world(transform, cols.ravel(), rows.ravel())
+    e, n = to_map(transform, cols.ravel(), rows.ravel())
     m = e.size
     slope = np.zeros((m, 2))
     if dem is None:
         h = np.zeros(m)
     else:  # the heights at the nodes and half a pixel either side along columns and rows
         dc, dr = np.array([0.0, -0.5, 0.5, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, -0.5, 0.5])
-        ee, nn = pixel_to_world(transform, cols.ravel()[None] + dc[:, None], rows.ravel()[None] + dr[:, None])
+        ee, nn = to_map(transform, cols.ravel()[None] + dc[:, None], rows.ravel()[None] + dr[:, None])
         hh = np.asarray(dem(ee.ravel(), nn.ravel()), dtype=np.float64).reshape(5, m)
         h, slope = hh[0], np.column_stack([hh[2] - hh[1], hh[4] - hh[3]])
     jp, jg = model.jacobians(params, np.column_stack([e, n, h]))
     # d(scene) / d(output col, row) = d(scene) / d(E, N) . d(E, N) / d(col, row) + d(scene) / dh . dh / d(col, row)
-    jac = jg[:, :, :2] @ np.array([[transform.a, transform.b], [transform.d, transform.e]])
+    jac = jg[:, :, :2] @ linear(transform, cols.ravel(), rows.ravel())
     jac = jac + jg[:, :, 2:3] * slope[:, None, :]
     with np.errstate(invalid="ignore"):
         inv = np.linalg.inv(np.where(np.isfinite(jac), jac, np.nan))

@@ -33,7 +33,7 @@ import math
 import os
 import tempfile
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import dask
 import dask.array as da
@@ -61,11 +61,13 @@ from ..status import Status
 from ..tiles import TileGrid
 from .block import Matches, build_problem, connected_scenes, solve
 from .compose import NO_SOURCE, blend, centre_score
+from .control import DEFAULT_SIGMA_PX, read_control
 from .dense_neighbours import refine_by_neighbours
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
 from .heights import MapDEM, ref_to_scene_prior
 from .layers import field_layers, model_layers, pixel_sigma, scene_uncertainty
 from .matching import PairSpec, match_pairs, scene_points
+from .outgrid import Reprojected, from_map, other_grid, to_map
 from .placement import Placement, affine_between, footprint_from_model, overlap_fraction, place_by_neighbours
 from .projection import project_window
 from .radiometry import seam_step, solve_balance
@@ -146,6 +148,15 @@ class MosaicSummary:
         Per block scene, how ``dense=True`` refined it: ``"reference"`` (a control scene, against
         the reference), ``"via i, j"`` (against its refined neighbours, scene indices;
         :mod:`geocoder.mosaic.dense_neighbours`) or ``"not"``. Empty without ``dense``.
+    given_file : str
+        The ``control`` CSV (empty without one).
+    given_points : list of int
+        Per scene, the CSV's control points the adjustment used (those withheld as check
+        points are counted in ``check_points``); empty without a CSV.
+    given_rmse_px : list of float
+        Per scene, the RMS residual (scene pixels) of those points: their measured pixel
+        against their map coordinates through the adjusted model (NaN without points or out
+        of the block).
     """
 
     scenes: list[str]
@@ -173,6 +184,9 @@ class MosaicSummary:
     job: dict = field(default_factory=dict)
     placed: dict = field(default_factory=dict)
     dense_refined: list[str] = field(default_factory=list)
+    given_file: str = ""
+    given_points: list[int] = field(default_factory=list)
+    given_rmse_px: list[float] = field(default_factory=list)
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -192,6 +206,8 @@ class MosaicSummary:
             "ground points by rays: " + ", ".join(f"{k}: {v}" for k, v in self.rays.items()),
             f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
             + ", ".join(f"{r:.3f}" for r in self.rms_px),
+            *([f"control points from {self.given_file}: {sum(self.given_points)} used, per scene {self.given_points}, "
+               "RMS residual per scene (px) " + ", ".join(f"{r:.3f}" for r in self.given_rmse_px)] if self.given_file else []),
             *([f"check points (withheld): {sum(self.check_points)}, RMS residual per scene (px) "
                + ", ".join(f"{r:.3f}" for r in self.check_rmse_px)] if sum(self.check_points) else []),
             *([f"radiometric balance: grey-value step at the tie points {self.seam_step[0]:.3g} before, "
@@ -264,11 +280,39 @@ def _seam_figures(summary: MosaicSummary, stats: list[dict], block: list[int], p
     summary.seam_grey_step = float(np.sqrt(sum(r["pixels"] * r["grey_step"] ** 2 for r in table) / n)) if n else float("nan")
 
 
-def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int], located: dict | None,
+def _through_map(to_ref, transform: Affine, grid: Affine | Reprojected):
+    """Scene pixel -> output pixel of any output grid, through the reference's map coordinates."""
+    def f(x, y):
+        rx, ry = to_ref(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        return from_map(grid, *pixel_to_world(transform, rx, ry))
+
+    return f
+
+
+def _output_crs(ref: xr.DataArray, reference, resolution: float | None, crs) -> str | None:
+    """``crs`` as WKT, None where it is the reference's; refused without a georeferenced reference."""
+    if resolution is None and crs is None:
+        return None
+    if not ref.attrs.get("georeferenced"):
+        raise InputError(reference, "is not georeferenced: an output resolution or CRS needs the reference's CRS")
+    if crs is None:
+        return None
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    try:
+        out = CRS.from_user_input(crs)
+    except CRSError:
+        raise ValueError(f"crs: {crs!r} is not a coordinate reference system pyproj knows") from None
+    return None if out == CRS.from_user_input(ref.rio.crs) else out.to_wkt()
+
+
+def _scene_xy(model, params, transform: Affine | Reprojected, window: tuple[int, int, int, int], located: dict | None,
               origin: tuple[int, int], heights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Position in one scene of every pixel of an output window: its adjusted model, or its
     dense field where that matched or filled the pixel.
 
+    ``transform``: the output grid (an affine, or :class:`~geocoder.mosaic.outgrid.Reprojected`);
     ``origin``: the output grid's pixel (0, 0) in reference pixels (``col, row``);
     ``heights``: the window's ground heights (the DEM's; 0 without).
     """
@@ -276,7 +320,7 @@ def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int
 
     r0, r1, c0, c1 = window
     ys, xs = np.mgrid[r0:r1, c0:c1].astype(np.float64)
-    ex, ny = pixel_to_world(transform, xs, ys)
+    ex, ny = to_map(transform, xs, ys)
     hz = np.zeros(ex.shape) if heights is None else np.asarray(heights, dtype=np.float64).reshape(ex.shape)
     x, y = project_window(model, params, ex, ny, hz)
     if located is None:
@@ -298,7 +342,7 @@ def _scene_xy(model, params, transform: Affine, window: tuple[int, int, int, int
     return x, y
 
 
-def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine, models: list, readers: list,
+def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine | Reprojected, models: list, readers: list,
                  shapes: list, feather_px: float, method: str, balance: np.ndarray, fields: list,
                  origin: tuple[int, int], boxes: np.ndarray, seams: dict | None = None,
                  grid_shape: tuple[int, int] | None = None, dem=None, covs: list | None = None,
@@ -337,7 +381,7 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
     heights = None
     if dem is not None:  # every pixel's ground height, mapped into each scene with it
         ys, xs = np.mgrid[r0:e1, c0:f1].astype(np.float64)
-        heights = dem(*pixel_to_world(transform, xs, ys))
+        heights = dem(*to_map(transform, xs, ys))
     nb = readers[0].shape[0] if readers else 1
     values = np.full((near.size, nb, e1 - r0, f1 - c0), np.nan, dtype=np.float32)
     scores = np.full((near.size, e1 - r0, f1 - c0), np.nan)
@@ -422,6 +466,9 @@ def mosaic(
     output_tile: int | None = None,
     control_scenes: list[int] | None = None,
     check_points: float = 0.0,
+    control: str | os.PathLike | None = None,
+    resolution: float | None = None,
+    crs=None,
     feather: float = 8.0,
     seams: str = "least-cost",
     resampling: str = "bilinear",
@@ -452,7 +499,8 @@ def mosaic(
         adjustment carries it by its tie points. A scene found nowhere is reported in
         ``summary["left_out"]`` and left out.
     reference : str or PathLike
-        Orthoimage: the output's CRS and pixel, and the source of control points.
+        Orthoimage: the source of control points, the CRS of the scenes' models, and the
+        output's CRS and pixel unless ``crs`` or ``resolution`` say otherwise.
     out : str or PathLike, optional
         Zarr store to write (atomically; output safety as in :func:`geocoder.register`).
         Without it the mosaic is computed into memory.
@@ -466,11 +514,35 @@ def mosaic(
         depend on it (to rounding): the seams are decided on a coarse grid, not per tile.
     control_scenes : list of int, optional
         Scenes whose reference matches serve as control points (default all); the others
-        are placed by tie points only (sparse control).
+        are placed by tie points only (sparse control). The ``control`` CSV's points count
+        whatever this says: ``control_scenes=[]`` with a CSV is control given by hand only.
     check_points : float
         Share of every control scene's control points withheld from the adjustment as check
         points (every n-th; 0: none): their residuals through the adjusted models are the
-        summary's ``check_rmse_px``, an accuracy the adjustment did not see.
+        summary's ``check_rmse_px``, an accuracy the adjustment did not see. The ``control``
+        CSV's points are withheld the same way, scene by scene.
+    control : str or PathLike, optional
+        Ground control points measured by hand: a CSV with a header and the columns
+        ``scene`` (0-based index in ``scenes``, or the scene's file name), ``col``, ``row``
+        (pixel in that scene, pixel centres at integers: the top-left pixel's centre is
+        ``0, 0``), ``x``, ``y`` (map coordinates in the reference's CRS), optionally
+        ``sigma`` (standard deviation of ``x`` and ``y``, map units; default half the
+        reference's pixel) and ``id``. Each point is a control point of the block adjustment
+        beside the reference's matches (the scene pixel observed with a precision of 0.3 px,
+        :mod:`geocoder.mosaic.control`). A malformed file raises
+        :class:`~geocoder.errors.InputError` naming the file, line and column before any
+        work. The summary's ``given_points`` and ``given_rmse_px`` report them.
+    resolution : float, optional
+        The output's pixel size, in units of its CRS. Default: the reference's pixel grid
+        itself. Given (or with ``crs``), the output is a north-up grid of square pixels
+        aligned to multiples of ``resolution`` (pixel edges at ``k * resolution``), covering
+        the scenes' footprints as the default does.
+    crs : str, int or pyproj.CRS, optional
+        The output's CRS (``"EPSG:32634"``, ``3857``, WKT...); default the reference's. The
+        scenes' models stay in the reference's CRS: every output pixel is mapped there
+        exactly (pyproj, per pixel, in its tile's task). Without ``resolution``, the pixel is
+        the reference's pixel size measured in ``crs`` at the block's centre. Not with
+        ``dense`` (the dense fields live on the reference's grid).
     feather : float
         Width of the blend across a seam, in output pixels.
     seams : {"least-cost", "centre"}
@@ -540,8 +612,9 @@ def mosaic(
         the output's columns and rows, output pixels: the dense match's where matched, else
         the adjustment's covariance propagated to the pixel plus the scene's mean squared
         residual; a feathered pixel's are its ``source`` scene's;
-        :mod:`geocoder.mosaic.layers`), ``height (y, x)`` with a ``dem``, the reference CRS
-        and transform; ``attrs``: the adjusted ``models``, the ``radiometry`` (gain, offset
+        :mod:`geocoder.mosaic.layers`), ``height (y, x)`` with a ``dem``, the output's CRS
+        and transform (the reference's by default); ``attrs``: the adjusted ``models``
+        (``models_crs``: their CRS, when not the output's), the ``radiometry`` (gain, offset
         per scene and band) and the ``summary`` (JSON). With ``out``, overview levels of every
         variable (``status`` and ``source`` nearest, the others averaged).
     """
@@ -559,24 +632,35 @@ def mosaic(
         raise ValueError(f"model must be one of {', '.join(KINDS)}, got {model!r}")
     if dense not in (False, True, "control"):
         raise ValueError(f"dense must be True, False or 'control', got {dense!r}")
+    if resolution is not None and not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"resolution must be a positive number, got {resolution!r}")
+    if dense and (resolution is not None or crs is not None):
+        raise ValueError("dense refinement needs the reference's grid: give no resolution or crs with dense")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
     if output_tile is None:
         output_tile = tile
     if output_tile < 16 or output_tile % 16:
         raise ValueError(f"output_tile must be a multiple of 16, got {output_tile}")
     opts.validate()
+    extra = [control] if control is not None else []  # the CSV is never written over either
     if out is not None:
-        out = check_output(out, inputs=(*scenes, reference), overwrite=overwrite)
+        out = check_output(out, inputs=(*scenes, reference, *extra), overwrite=overwrite)
     if cog is not None:  # refused now, not after the job
-        check_output(cog, inputs=(*scenes, reference, *([out] if out is not None else [])), overwrite=overwrite)
+        check_output(cog, inputs=(*scenes, reference, *extra, *([out] if out is not None else [])), overwrite=overwrite)
     if report is not None:
         from ..reporting import require_matplotlib
 
         require_matplotlib()
-        check_output(report, inputs=(*scenes, reference, *([out] if out is not None else []), *([cog] if cog else [])),
+        check_output(report, inputs=(*scenes, reference, *extra, *([out] if out is not None else []), *([cog] if cog else [])),
                      overwrite=overwrite, option="report")
     ref = open_scene(reference, chunks=tile, grid=True)
     opened = [open_scene(s, chunks=tile) for s in scenes]
+    crs = _output_crs(ref, reference, resolution, crs)
+    given = None
+    if control is not None:  # read and checked now, before any work
+        pixel = math.sqrt(abs((scene_transform(ref) or Affine.identity()).determinant))
+        given = read_control(control, list(scenes), [(s.sizes["y"], s.sizes["x"]) for s in opened],
+                             default_sigma=DEFAULT_SIGMA_PX * pixel)
     # what every scene carries (its footprint; the model when asked for): refused now, naming the scene
     carried = [scene_sensor(s, model) if model != "polynomial" else _carried(s) for s in scenes]
     if model != "polynomial" and not ref.attrs.get("georeferenced"):
@@ -596,7 +680,9 @@ def mosaic(
     key = fingerprint(scenes=[input_identity(s) for s in scenes], reference=input_identity(reference),
                       dem=None if dem is None else input_identity(dem), options=repr(opts), output_tile=output_tile,
                       control=sorted(allowed), check_points=check_points, feather=feather, seams=seams, resampling=resampling, balance=balance,
-                      dense=dense, model=model, version=__version__)
+                      dense=dense, model=model, version=__version__,
+                      **({} if given is None else {"given": [input_identity(control), given.digest]}),
+                      **({} if resolution is None and crs is None else {"grid": [resolution, crs]}))
     job = open_job(out, key, resume) if out is not None else Job(tempfile.mkdtemp(prefix=".geocoder-job-"), key)
     if job.resumed:
         log.info("resuming the job in %s", job.path)
@@ -647,6 +733,9 @@ def mosaic(
                     control.append(Matches(-1, k, np.column_stack([ex, ny]), np.column_stack([tp.dist_x, tp.dist_y]),
                                            np.column_stack([tp.sigma_x, tp.sigma_y])))
         summary.control_points = [sum(len(m) for m in control if m.j == k) for k in range(len(opened))]
+        if given is not None:  # the CSV's points: control observations as the reference's matches are
+            control.extend(given.matches(len(opened)))
+            summary.given_file = given.path
         placement = Placement()
         if missed and ref_to:
             with timer("placement by neighbours"):
@@ -681,6 +770,7 @@ def mosaic(
                                     np.column_stack([tp.sigma_x, tp.sigma_y])))
                 summary.pairs.append({"i": i, "j": j, "ties": len(tp), "overlap": round(overlaps[i, j], 3)})
         ok = connected_scenes(len(opened), control, ties, min_points=opts.min_tiepoints)
+        ok &= np.array([k in to_ref for k in range(len(opened))], dtype=bool)  # CSV points do not place a scene
         for k in range(len(opened)):
             if not ok[k] and str(k) not in summary.left_out:
                 summary.left_out[str(k)] = "tied to no control point (no overlap with a controlled scene)"
@@ -692,7 +782,7 @@ def mosaic(
         with timer("block adjustment"):
             problem = build_problem(
                 [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
-                [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in used if m.j in index],
+                [replace(m, j=index[m.j]) for m in used if m.j in index],
                 [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
                 order=order, height=heights,
                 models=None if model == "polynomial" else [(sensors[k], sensors[k].initial_params()) for k in block],
@@ -706,6 +796,9 @@ def mosaic(
         models = [(problem.frames[n].model, result.params[n]) for n in range(len(block))]
         if check_points:
             summary.check_points, summary.check_rmse_px = _check_residuals(checks, models, index, len(opened), heights)
+        if given is not None:
+            summary.given_points, summary.given_rmse_px = _check_residuals(
+                [m for m in used if m.ground_sigma is not None], models, index, len(opened), heights)
         for n, k in enumerate(block):
             if k in placement.via:  # its footprint from its adjusted model, not the overlap's extrapolation
                 to_ref[k], ref_to[k] = footprint_from_model(*models[n], transform, to_ref[k], shapes[k], heights)
@@ -716,11 +809,12 @@ def mosaic(
             with timer("radiometric balance"):
                 gains, summary.seam_step = _balance(
                     [readers[k] for k in block], ref_reader, transform, tile,
-                    [Matches(-1, index[m.j], m.a, m.b, m.sigma) for m in control if m.j in index],
+                    [replace(m, j=index[m.j]) for m in control if m.j in index],
                     [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
                     nbands)
-        ds, grid, out_transform = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block], output_tile,
-                                               opened[0].sizes["band"], heights=heights is not None)
+        ds, grid, out_transform, out_grid = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block],
+                                                         output_tile, opened[0].sizes["band"], heights=heights is not None,
+                                                         resolution=resolution, crs=crs)
         summary.shape = (ds.sizes["y"], ds.sizes["x"])
         ds.attrs.update(_attrs(summary, block, models, gains))
         store = job.file("output.zarr")
@@ -746,25 +840,30 @@ def mosaic(
                 summary.dense_refined = [
                     "via " + ", ".join(str(block[k]) for k in via[n]) if n in via else "reference" if fields[n] else "not"
                     for n in range(len(block))]
-        origin = tuple(int(round(v)) for v in ~transform * (out_transform.c, out_transform.f))  # output (0, 0) in reference pixels
-        boxes = np.array([_footprint_box(to_ref[k], shapes[k], origin) for k in block])
-        summary.footprints = [footprint_outline(_shifted(to_ref[k], origin), shapes[k]) for k in block]
+        if resolution is None and crs is None:  # the reference's grid: output pixel = reference pixel - origin
+            origin = tuple(int(round(v)) for v in ~transform * (out_transform.c, out_transform.f))  # output (0, 0) in reference pixels
+            to_out = [_shifted(to_ref[k], origin) for k in block]
+            boxes = np.array([_footprint_box(to_ref[k], shapes[k], origin) for k in block])
+        else:
+            origin = (0, 0)  # no dense fields (refused above): unused
+            to_out = [_through_map(to_ref[k], transform, out_grid) for k in block]
+            boxes = np.array([_footprint_box(f, shapes[k], origin) for f, k in zip(to_out, block)])
+        summary.footprints = [footprint_outline(f, shapes[k]) for f, k in zip(to_out, block)]
         _adjustment_figures(summary, problem, result, models, [shapes[k] for k in block],
-                            [_to_map(to_ref[k], transform) for k in block], [_shifted(to_ref[k], origin) for k in block],
-                            heights)
+                            [_to_map(to_ref[k], transform) for k in block], to_out, heights)
         grid_shape = (ds.sizes["y"], ds.sizes["x"])
         plan = None
         block_pairs = [(index[p["i"]], index[p["j"]]) for p in summary.pairs
                        if p["i"] in index and p["j"] in index and p["ties"] > 0]
         if seams == "least-cost":
             with timer("seams"):
-                plan = plan_seams(job, store, grid_shape, output_tile, out_transform, models, [readers[k] for k in block],
+                plan = plan_seams(job, store, grid_shape, output_tile, out_grid, models, [readers[k] for k in block],
                                   [shapes[k] for k in block], gains, boxes, block_pairs, dem=heights)
                 summary.seam_cells_moved = plan.pop("changed")
         covs, unmodelled = scene_uncertainty(problem, result, len(block))
         with timer("mosaic"):
             tasks = {t.key: dask.delayed(_mosaic_tile, pure=True)(
-                store, (t.row0, t.row1, t.col0, t.col1), out_transform, models, [readers[k] for k in block],
+                store, (t.row0, t.row1, t.col0, t.col1), out_grid, models, [readers[k] for k in block],
                 [shapes[k] for k in block], feather, resampling, gains, fields, origin, boxes, plan, grid_shape, heights,
                 covs, unmodelled)
                 for t in grid}
@@ -778,6 +877,7 @@ def mosaic(
             "dense_fields": json.dumps([None if f is None else {"group": f["group"], "row0": f["row0"], "col0": f["col0"],
                                                                 "shape": list(f["shape"])} for n, f in enumerate(fields)]),
             "reference_origin": json.dumps(list(origin)),
+            **({"models_crs": out_grid.ref_crs} if isinstance(out_grid, Reprojected) else {}),
         })
         if cog is not None:
             with timer("cog"):
@@ -847,8 +947,9 @@ def _withhold(control: list, share: float) -> tuple[list, list]:
     used, checks = [], []
     for m in control:
         keep = np.arange(len(m)) % n != n - 1
-        used.append(Matches(m.i, m.j, m.a[keep], m.b[keep], m.sigma[keep]))
-        checks.append(Matches(m.i, m.j, m.a[~keep], m.b[~keep], m.sigma[~keep]))
+        for part, sel in ((used, keep), (checks, ~keep)):
+            part.append(replace(m, a=m.a[sel], b=m.b[sel], sigma=m.sigma[sel],
+                                ground_sigma=None if m.ground_sigma is None else m.ground_sigma[sel]))
     return used, checks
 
 
@@ -869,7 +970,10 @@ def _check_residuals(checks: list, models: list, index: dict, nscenes: int, heig
 
 
 def _footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], margin: int = 16) -> tuple[int, int, int, int]:
-    """``row0, row1, col0, col1`` (output pixels) around a scene's footprint, grown by ``margin``."""
+    """``row0, row1, col0, col1`` (output pixels) around a scene's footprint, grown by ``margin``.
+
+    ``to_ref``: scene pixel -> reference pixel, ``origin`` the output's pixel (0, 0) there; or
+    scene pixel -> output pixel directly, with ``origin = (0, 0)``."""
     h, w = shape
     t = np.linspace(0.0, 1.0, 17)
     xs = np.concatenate([t * (w - 1), np.full(17, w - 1.0), t * (w - 1), np.zeros(17)])
@@ -1005,6 +1109,8 @@ def scene_positions(ds: xr.Dataset, store: str | os.PathLike) -> list[tuple[np.n
     models = load_models(ds)
     fields = json.loads(ds.attrs.get("dense_fields", "null")) or [None] * len(models)
     transform = ds.rio.transform()
+    if "models_crs" in ds.attrs:  # another CRS than the models': its pixels mapped to theirs
+        transform = Reprojected(transform, ds.rio.crs.to_wkt(), ds.attrs["models_crs"])
     ref = json.loads(ds.attrs.get("reference_origin", "[0, 0]"))
     window = (0, ds.sizes["y"], 0, ds.sizes["x"])
     heights = np.asarray(ds["height"].values, dtype=np.float64) if "height" in ds else None
@@ -1049,8 +1155,13 @@ def _concurrently(fn, items: list, phase: str, threads: int) -> list:
     return results
 
 
-def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nbands: int, heights: bool = False):
-    """Empty output dataset on the reference's pixel grid covering every scene's footprint."""
+def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nbands: int, heights: bool = False,
+                 resolution: float | None = None, crs: str | None = None):
+    """Empty output dataset covering every scene's footprint: on the reference's pixel grid, or
+    (``resolution``, ``crs``: WKT) on that grid (:func:`~geocoder.mosaic.outgrid.other_grid`).
+
+    Returns the dataset, its tiles, its transform and the grid :func:`~geocoder.mosaic.outgrid.to_map` takes.
+    """
     corners = []
     for f, (h, w) in zip(to_ref, shapes):
         t = np.linspace(0, 1, 17)
@@ -1058,10 +1169,19 @@ def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nband
         ys = np.concatenate([np.zeros(17), t * (h - 1), np.full(17, h - 1.0), t * (h - 1)])
         corners.append(np.column_stack(f(xs, ys)))
     pts = np.concatenate(corners)
-    c0, r0 = np.floor(pts.min(axis=0)).astype(int)
-    c1, r1 = np.ceil(pts.max(axis=0)).astype(int) + 1
-    transform = (scene_transform(ref) or Affine.identity()) * Affine.translation(c0, r0)
-    height, width = int(r1 - r0), int(c1 - c0)
+    out_crs = ref.rio.crs if ref.attrs.get("georeferenced") else None
+    if resolution is None and crs is None:
+        c0, r0 = np.floor(pts.min(axis=0)).astype(int)
+        c1, r1 = np.ceil(pts.max(axis=0)).astype(int) + 1
+        transform = (scene_transform(ref) or Affine.identity()) * Affine.translation(c0, r0)
+        height, width = int(r1 - r0), int(c1 - c0)
+        grid_map = transform
+    else:
+        ref_transform = scene_transform(ref)
+        e, n = pixel_to_world(ref_transform, pts[:, 0], pts[:, 1])
+        transform, (height, width), grid_map = other_grid(ref_transform, ref.rio.crs.to_wkt(), e, n,
+                                                          resolution=resolution, crs=crs)
+        out_crs = crs or out_crs
     grid = TileGrid.regular(height, width, tile)
     chunks = ((nbands,), *(tuple(min(tile, n - i) for i in range(0, n, tile)) for n in (height, width)))
     xs, _ = pixel_to_world(transform, np.arange(width), np.zeros(width))
@@ -1094,9 +1214,9 @@ def _output_grid(ref: xr.DataArray, to_ref: list, shapes: list, tile: int, nband
                        "residual; NaN where unknown (no covariance; a pixel matched by a scene refined against its neighbours, "
                        "whose error the match leaves out) or no scene covers the pixel "
                        "(geocoder.mosaic.layers)"})
-    if ref.attrs.get("georeferenced"):
-        ds = georeference(ds, ref.rio.crs, transform)
-    return ds, grid, transform
+    if out_crs is not None:
+        ds = georeference(ds, out_crs, transform)
+    return ds, grid, transform, grid_map
 
 
 def _attrs(summary: MosaicSummary, block: list[int], models: list, gains: np.ndarray) -> dict:
@@ -1125,7 +1245,8 @@ def load_models(ds: xr.Dataset) -> list:
         ``(model, params)`` per scene, in ``attrs["scenes"]`` order: a
         :class:`~geocoder.adjust.models.MapPolynomial`, or a
         :class:`~geocoder.mosaic.sensors.MapGround` line scanner or RPC; all map ground
-        ``(E, N, h)`` of the mosaic's CRS to scene pixels.
+        ``(E, N, h)`` of the reference's CRS to scene pixels: the mosaic's, or, for a mosaic
+        written in another (``crs=``), the one ``attrs["models_crs"]`` holds (WKT).
     """
     return [model_from_dict(m) for m in json.loads(ds.attrs["models"])]
 

@@ -20,9 +20,9 @@ import dask
 import numpy as np
 from affine import Affine
 
-from ..geometry import pixel_to_world
 from ..tiles import TileGrid
 from .compose import centre_score
+from .outgrid import Reprojected, to_map
 from .seams import CoarseScene, least_cost_labels
 
 #: Group and array of the coarse label map in a mosaic's store.
@@ -53,7 +53,7 @@ def seam_factor(shape: tuple[int, int], *, base: int = 8, largest: int = 64) -> 
     return f
 
 
-def coarse_tile(window: tuple[int, int, int, int], transform: Affine, models: list, readers: list, shapes: list,
+def coarse_tile(window: tuple[int, int, int, int], transform: Affine | Reprojected, models: list, readers: list, shapes: list,
                 balance: np.ndarray, boxes: np.ndarray, factor: int, samples: int, dem=None) -> dict:
     """Coarse cells of one window of the output in every scene that covers it (worker side).
 
@@ -61,8 +61,8 @@ def coarse_tile(window: tuple[int, int, int, int], transform: Affine, models: li
     ----------
     window : (r0, r1, c0, c1)
         Output pixels; ``r0`` and ``c0`` are multiples of ``factor``.
-    transform : Affine
-        The output grid's transform.
+    transform : Affine or Reprojected
+        The output grid (:mod:`geocoder.mosaic.outgrid`).
     models : list of (model, params)
         The adjusted model of every block scene (map -> scene pixel).
     readers : list of WindowReader
@@ -94,7 +94,7 @@ def coarse_tile(window: tuple[int, int, int, int], transform: Affine, models: li
     gy, gx = np.meshgrid(ys, xs, indexing="ij")
     cy, cx = np.meshgrid((np.arange(i0, i0 + nr) + 0.5) * factor - 0.5, (np.arange(j0, j0 + nc) + 0.5) * factor - 0.5,
                          indexing="ij")
-    ex, ny = pixel_to_world(transform, np.concatenate([gx.ravel(), cx.ravel()]), np.concatenate([gy.ravel(), cy.ravel()]))
+    ex, ny = to_map(transform, np.concatenate([gx.ravel(), cx.ravel()]), np.concatenate([gy.ravel(), cy.ravel()]))
     ground = np.column_stack([ex, ny, np.zeros(ex.size) if dem is None else dem(ex, ny)])
     m = gx.size
     out = {}
@@ -119,7 +119,7 @@ def coarse_tile(window: tuple[int, int, int, int], transform: Affine, models: li
     return out
 
 
-def plan_seams(job, store: str, grid_shape: tuple[int, int], tile: int, transform: Affine, models: list, readers: list,
+def plan_seams(job, store: str, grid_shape: tuple[int, int], tile: int, transform: Affine | Reprojected, models: list, readers: list,
                shapes: list, balance: np.ndarray, boxes: np.ndarray, pairs: list[tuple[int, int]], *,
                samples: int = 4, dem=None) -> dict:
     """Cut the seams of a mosaic on its coarse grid and write the label map into ``store``.
