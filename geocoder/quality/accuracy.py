@@ -38,8 +38,18 @@ def mosaic_errors(ds: xr.Dataset, truths: Sequence[Callable], shapes: Sequence[t
         Error of every output pixel in the scene it comes from (NaN where none).
     seams : ndarray, shape (n,)
         For every output pixel seen by two scenes, the distance between where each puts it.
+
+    Raises
+    ------
+    ValueError
+        If the mosaic's grid is in another CRS than its models (``crs=``): its coordinates
+        are not those the truths and models map.
     """
     from ..mosaic import load_models
+
+    if ds.attrs.get("models_crs"):
+        raise ValueError("the mosaic's grid is in another CRS than its models (mosaic(crs=...)); "
+                         "mosaic_errors needs a mosaic on the models' CRS")
 
     models = load_models(ds)
     ex, ny = np.meshgrid(ds.x.values, ds.y.values)
