@@ -19,13 +19,14 @@ RMS difference of the filled / estimated values from the removed matches and fro
 
 Usage::
 
-    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit]
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,tol0.05]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import sys
 import tempfile
@@ -212,6 +213,14 @@ def main() -> None:
 
     modes = {"full": RegisterOptions(matching=DenseOptions(col_step=1, halo=4)), "default": None,
              "no-line-fit": RegisterOptions(lines=LineOptions(fit_order=-1))}
+    for mode in args.modes.split(","):  # "colN": the lattice on every N-th column (halo N); "tolX": lattice_tol X; "itN": densify rounds
+        if re.fullmatch(r"col\d+", mode):
+            n = int(mode[3:])
+            modes[mode] = RegisterOptions(matching=DenseOptions(col_step=n, halo=max(n, 16)))
+        elif re.fullmatch(r"tol[0-9.]+", mode):
+            modes[mode] = RegisterOptions(matching=DenseOptions(lattice_tol=float(mode[3:])))
+        elif re.fullmatch(r"it\d+", mode):  # "itN": N resampling rounds of the every-pixel pass
+            modes[mode] = RegisterOptions(matching=DenseOptions(densify_iterations=int(mode[2:])))
     table, holes = [], []
     with tempfile.TemporaryDirectory(prefix="bench-dense-cases-") as tmp, local_cluster(args.workers) as cluster, \
             Client(cluster) as client:
