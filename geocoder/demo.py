@@ -21,7 +21,7 @@ def run_demo(*, size: int = 1024, seed: int = 0, directory: str = "geocoder-demo
     report the error of the displacement field against the known truth.
 
     ``directory`` must be new, empty or an earlier demo's (nothing else is written into).
-    ``tile`` goes to :func:`geocoder.register` (None: the option ``tile``, 1024 unless set).
+    ``tile`` goes to :func:`geocoder.register` (None: the option ``tile``, 512 unless set).
     Returns the lines to print.
     """
     directory = claim_directory(directory, product="demo")

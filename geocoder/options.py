@@ -12,7 +12,7 @@ Options are read in the process that builds the job (the client), not on the wor
 
 =============  ===========================================================================
 ``tile``       default tile (chunk) size of ``register`` and ``ingest``: a multiple of 64
-               (default 1024)
+               (default 512)
 ``progress``   progress bars of ``register`` on standard error: True, False, or None to
                keep the caller's display (the CLI's bars; nothing in a library call)
 ``n_workers``  worker processes of the local cluster geocoder starts when no client or
@@ -28,7 +28,7 @@ from typing import Any, Self
 import dask
 
 #: Built-in defaults (the last layer).
-DEFAULTS: dict[str, Any] = {"tile": 1024, "progress": None, "n_workers": None}
+DEFAULTS: dict[str, Any] = {"tile": 512, "progress": None, "n_workers": None}
 
 _OPTIONS: dict[str, Any] = {name: None for name in DEFAULTS}
 

@@ -192,7 +192,7 @@ def ingest(
     out : str or PathLike
         The store to write: a local path or any fsspec URL.
     tile : int, optional
-        Chunk size in y and x. Default :func:`geocoder.get_option` ``("tile")`` (1024 unless
+        Chunk size in y and x. Default :func:`geocoder.get_option` ``("tile")`` (512 unless
         set by :func:`geocoder.set_options` or Dask config ``geocoder.tile``).
     nodata : float, optional
         Extra nodata value of ``src`` (see :func:`open_scene`); not used for a DataArray.

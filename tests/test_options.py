@@ -25,13 +25,13 @@ def test_bad_names_and_values_raise_naming_the_option(options, named):
 
 
 def test_context_manager_global_setter_and_dask_config():
-    assert get_options() == {"tile": 1024, "progress": None, "n_workers": None}
+    assert get_options() == {"tile": 512, "progress": None, "n_workers": None}
     with set_options(tile=256, progress=True):
         assert get_option("tile") == 256 and get_option("progress") is True
-        with set_options(tile=2048):
-            assert get_option("tile") == 2048
+        with set_options(tile=1024):
+            assert get_option("tile") == 1024
         assert get_option("tile") == 256
-    assert get_option("tile") == 1024 and get_option("progress") is None
+    assert get_option("tile") == 512 and get_option("progress") is None
     try:
         geocoder.set_options(n_workers=3)
         assert get_option("n_workers") == 3
@@ -75,5 +75,5 @@ def test_register_tile_layers_and_progress(tmp_path, client, capsys):
         assert tile_of(tmp_path / "c.zarr") == (128, 128)
         assert "ingest (base, distorted)" in capsys.readouterr().err  # both scenes in one phase
     register(base, dist, out=tmp_path / "d.zarr", client=client, dense=False)
-    assert tile_of(tmp_path / "d.zarr") == (512, 512)  # the default tile (1024), cut to the 512 px scene
+    assert tile_of(tmp_path / "d.zarr") == (512, 512)
     assert "ingest" not in capsys.readouterr().err  # no option, no display: as before

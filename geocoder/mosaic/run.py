@@ -508,7 +508,7 @@ def mosaic(
         Polynomial order of every scene's model (1-3).
     tile : int, optional
         Tile of all tile-parallel stages and of the output (a multiple of 64); default
-        :func:`geocoder.get_option` ``("tile")`` (1024 unless set).
+        :func:`geocoder.get_option` ``("tile")`` (512 unless set).
     output_tile : int, optional
         Tile (and chunk) of the output grid, default ``tile``. The mosaic's pixels do not
         depend on it (to rounding): the seams are decided on a coarse grid, not per tile.

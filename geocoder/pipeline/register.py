@@ -67,7 +67,7 @@ class RegisterOptions:
     ----------
     tile : int or None
         Tile (chunk) size of every tile-parallel stage, a multiple of 64; None:
-        :func:`geocoder.get_option` ``("tile")`` (1024 unless set).
+        :func:`geocoder.get_option` ``("tile")`` (512 unless set).
     resampling : {"nearest", "bilinear", "cubic", "lanczos"}
         Interpolator of the single resampling.
     band, dist_band : int
@@ -315,7 +315,7 @@ def register(
         Interpolator of the single resampling.
     tile : int, optional
         Tile size (chunk) of all tile-parallel stages; a multiple of 64. Default
-        ``options.tile``, else :func:`geocoder.get_option` ``("tile")`` (1024 unless set by
+        ``options.tile``, else :func:`geocoder.get_option` ``("tile")`` (512 unless set by
         :func:`geocoder.set_options` or Dask config ``geocoder.tile``).
     client : distributed.Client, optional
         Where to run; default ``scheduler`` or ``DASK_SCHEDULER_ADDRESS``, else a local cluster.

@@ -221,7 +221,7 @@ def simulate(
     resampling : str
         Interpolator used to sample the ortho.
     tile : int, optional
-        Chunk of the rendered image; default :func:`geocoder.get_option` ``("tile")`` (1024
+        Chunk of the rendered image; default :func:`geocoder.get_option` ``("tile")`` (512
         unless set).
     client, scheduler
         Where to run (as :func:`geocoder.register`).
