@@ -11,9 +11,10 @@ Every geocoder configuration (dense / --no-dense, 1 and 2 local worker processes
 thread each, and optionally the code of another git revision: ``--before-rev``) runs in a
 fresh Python process: it starts its local cluster (timed apart), registers a small
 warm-up pair (numba compiles or loads its cache in the workers), then the timed
-``register(base, distorted, out=..., tile=512, client=...)`` (ingest to Zarr included, the
-cluster already up). The flow codes get the distorted image radiometrically normalised
-(mean/std) and run in this process (OpenCV uses its own threads).
+``register(base, distorted, out=..., client=...)`` at that revision's default tile (this
+tree's rows at ``--tile`` when given), ingest to Zarr included, the cluster already up. The flow codes get the
+distorted image radiometrically normalised (mean/std) and run in this process (OpenCV uses
+its own threads).
 
 Columns: wall time; Mpx/s (base pixels per second); ratio of the wall time to DIS's;
 RMSE against the truth over the method's matched pixels (geocoder dense: status
@@ -129,7 +130,7 @@ def _child(args) -> None:
             shutil.rmtree(work / "out.zarr", ignore_errors=True)
             w0, c0 = client.run(_cpu), _cpu()
             t0 = time.perf_counter()
-            ds = register(work.parent / "base.tif", work.parent / "dist.tif", tile=512, client=client,
+            ds = register(work.parent / "base.tif", work.parent / "dist.tif", tile=args.tile, client=client,
                           out=work / "out.zarr", dense=dense, options=options)
             wall = time.perf_counter() - t0
             w1, c1 = client.run(_cpu), _cpu()
@@ -153,14 +154,16 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def run_geocoder(work: Path, label: str, *, dense: bool | str, nworkers: int, pythonpath: str | None, repeat: int = 1) -> dict:
+def run_geocoder(work: Path, label: str, *, dense: bool | str, nworkers: int, pythonpath: str | None, repeat: int = 1,
+                 tile: int | None = None) -> dict:
     d = work / label.replace(" ", "_").replace("/", "_")
     d.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     if pythonpath:
         env["PYTHONPATH"] = pythonpath + os.pathsep + env.get("PYTHONPATH", "")
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(d), "--nworkers", str(nworkers),
-           "--dense", dense if isinstance(dense, str) else ("yes" if dense else "no"), "--repeat", str(repeat)]
+           "--dense", dense if isinstance(dense, str) else ("yes" if dense else "no"), "--repeat", str(repeat),
+           *(["--tile", str(tile)] if tile else [])]
     subprocess.run(cmd, env=env, check=True, cwd=work, stdout=subprocess.DEVNULL)
     info = json.loads((d / "timing.json").read_text())
     f = np.load(d / "fields.npz")
@@ -209,6 +212,7 @@ def main() -> None:
                     help="also the opt-in dense mode: region growing of every pixel (DenseOptions(col_step=1))")
     ap.add_argument("--before-rev", default=None, help="also run the geocoder rows with this git revision's code")
     ap.add_argument("--repeat", type=int, default=1, help="timed geocoder runs per configuration (the fastest is shown)")
+    ap.add_argument("--tile", type=int, default=None, help="register's tile for this tree's rows (default: its default; --before-rev rows keep theirs)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--nworkers", type=int, default=2, help=argparse.SUPPRESS)
     ap.add_argument("--dense", default="no", help=argparse.SUPPRESS)
@@ -253,7 +257,8 @@ def main() -> None:
                     print(f"running {label} ...", file=sys.stderr, flush=True)
                     if dense == "full" and path is not None:
                         continue  # the before tree's default
-                    info = run_geocoder(work, label, dense=dense, nworkers=n, pythonpath=path, repeat=args.repeat)
+                    info = run_geocoder(work, label, dense=dense, nworkers=n, pythonpath=path, repeat=args.repeat,
+                                        tile=args.tile if path is None else None)
                     if path is not None and not all(m.startswith(path) for m in [info["module"], *info["worker_modules"]]):
                         raise SystemExit(f"{label}: geocoder imported from {info['module']} / {info['worker_modules']}, not {path}")
                     st = info["status"]
