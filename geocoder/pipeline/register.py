@@ -369,15 +369,16 @@ def register(
                             show_progress=show_progress)
     given = {"tile": tile, "resampling": resampling, "band": band, "dist_band": dist_band, "order": order, "dense": dense}
     opts = replace(options or RegisterOptions(), **{k: v for k, v in given.items() if v is not None})
-    if opts.tile is None:  # neither the keyword nor ``options``: set_options, Dask config, or by the base's size
-        shape = base if isinstance(base, xr.DataArray) else open_scene(base, nodata=nodata)
-        opts = replace(opts, tile=default_tile((shape.sizes["y"], shape.sizes["x"])))
     opts.validate()
-    tile = opts.tile
     if out is not None:
         out = check_output(out, inputs=(base, distorted), overwrite=overwrite)
         if not storage.is_url(out) and not os.path.isdir(os.path.dirname(out)):
             raise InputError(out, "the output's parent directory does not exist")
+    if opts.tile is None:  # neither the keyword nor ``options``: set_options, Dask config, or by the base's size
+        shape = base if isinstance(base, xr.DataArray) else open_scene(base, nodata=nodata, grid=True)
+        opts = replace(opts, tile=default_tile((shape.sizes["y"], shape.sizes["x"])))
+        opts.validate()
+    tile = opts.tile
     bscene = base if isinstance(base, xr.DataArray) else open_scene(base, chunks=tile, nodata=nodata, grid=True)
     dscene = distorted if isinstance(distorted, xr.DataArray) else open_scene(distorted, chunks=tile, nodata=dist_nodata)
     for scene, b in ((bscene, opts.band), (dscene, opts.dist_band or opts.band)):
