@@ -110,7 +110,8 @@ scheduler_option = click.option(
 )
 tile_option = click.option("--tile", default=None, type=click.IntRange(min=64),
                            help="Tile (chunk) size in pixels (a multiple of 64 where tiles are matched). Default: "
-                                "geocoder's option 'tile' (Dask config geocoder.tile, e.g. DASK_GEOCODER__TILE), else 512.")
+                                "geocoder's option 'tile' (Dask config geocoder.tile, e.g. DASK_GEOCODER__TILE), else 512 "
+                                "(register: 1024 when the base's smaller side is 2048 px or more).")
 overwrite_option = click.option("--overwrite", is_flag=True,
                                 help="Replace an existing output if geocoder wrote it (anything else is never replaced).")
 

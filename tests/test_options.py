@@ -77,3 +77,23 @@ def test_register_tile_layers_and_progress(tmp_path, client, capsys):
     register(base, dist, out=tmp_path / "d.zarr", client=client, dense=False)
     assert tile_of(tmp_path / "d.zarr") == (512, 512)
     assert "ingest" not in capsys.readouterr().err  # no option, no display: as before
+
+
+def test_default_tile_grows_with_the_scene_unless_set():
+    """Issue 12: 1024 from a smaller side of 2048 px on (faster there, slower on a 1024 px scene)."""
+    from geocoder.options import default_tile
+
+    assert default_tile((1024, 4096)) == 512 and default_tile((2047, 9000)) == 512
+    assert default_tile((2048, 2048)) == 1024 and default_tile((8192, 4096)) == 1024
+    with set_options(tile=256):
+        assert default_tile((8192, 8192)) == 256
+    with dask.config.set({"geocoder.tile": 128}):
+        assert default_tile((8192, 8192)) == 128
+
+
+@pytest.mark.cluster
+def test_register_takes_the_large_tile_for_a_large_base(tmp_path, client):
+    work = write_synthetic_pair(tmp_path, 2048, seed=5, max_displacement=4)
+    ds = register(work / "base.tif", work / "dist.tif", out=tmp_path / "big.zarr", client=client, dense=False)
+    assert ds.dx.data.chunksize == (1024, 1024)
+    assert xr.open_zarr(tmp_path / "big.zarr", consolidated=False).dx.data.chunksize == (1024, 1024)

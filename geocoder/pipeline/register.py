@@ -32,7 +32,7 @@ from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
 from ..multiscales import write_overviews
-from ..options import get_option
+from ..options import default_tile, get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
 from ..quality.lines import LineOptions
@@ -67,7 +67,8 @@ class RegisterOptions:
     ----------
     tile : int or None
         Tile (chunk) size of every tile-parallel stage, a multiple of 64; None:
-        :func:`geocoder.get_option` ``("tile")`` (512 unless set).
+        :func:`geocoder.get_option` ``("tile")`` (512 unless set; :func:`register` takes 1024 for a
+        base scene of 2048 px and more, :func:`geocoder.options.default_tile`).
     resampling : {"nearest", "bilinear", "cubic", "lanczos"}
         Interpolator of the single resampling.
     band, dist_band : int
@@ -315,8 +316,9 @@ def register(
         Interpolator of the single resampling.
     tile : int, optional
         Tile size (chunk) of all tile-parallel stages; a multiple of 64. Default
-        ``options.tile``, else :func:`geocoder.get_option` ``("tile")`` (512 unless set by
-        :func:`geocoder.set_options` or Dask config ``geocoder.tile``).
+        ``options.tile``, else the option ``tile`` if :func:`geocoder.set_options` or Dask
+        config ``geocoder.tile`` sets it, else 512, or 1024 for a base scene of 2048 px and more
+        on its smaller side (:func:`geocoder.options.default_tile`).
     client : distributed.Client, optional
         Where to run; default ``scheduler`` or ``DASK_SCHEDULER_ADDRESS``, else a local cluster.
     scheduler : str, optional
@@ -367,14 +369,16 @@ def register(
                             show_progress=show_progress)
     given = {"tile": tile, "resampling": resampling, "band": band, "dist_band": dist_band, "order": order, "dense": dense}
     opts = replace(options or RegisterOptions(), **{k: v for k, v in given.items() if v is not None})
-    if opts.tile is None:  # neither the keyword nor ``options``: geocoder.set_options, Dask config, 512
-        opts = replace(opts, tile=get_option("tile"))
     opts.validate()
-    tile = opts.tile
     if out is not None:
         out = check_output(out, inputs=(base, distorted), overwrite=overwrite)
         if not storage.is_url(out) and not os.path.isdir(os.path.dirname(out)):
             raise InputError(out, "the output's parent directory does not exist")
+    if opts.tile is None:  # neither the keyword nor ``options``: set_options, Dask config, or by the base's size
+        shape = base if isinstance(base, xr.DataArray) else open_scene(base, nodata=nodata, grid=True)
+        opts = replace(opts, tile=default_tile((shape.sizes["y"], shape.sizes["x"])))
+        opts.validate()
+    tile = opts.tile
     bscene = base if isinstance(base, xr.DataArray) else open_scene(base, chunks=tile, nodata=nodata, grid=True)
     dscene = distorted if isinstance(distorted, xr.DataArray) else open_scene(distorted, chunks=tile, nodata=dist_nodata)
     for scene, b in ((bscene, opts.band), (dscene, opts.dist_band or opts.band)):
