@@ -636,19 +636,14 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
 
 def _store_block(state: str, window: tuple[int, int, int, int], block: np.ndarray, mapping: PolyMap | None = None,
                  width: int = 0) -> np.ndarray | None:
-    from ..status import Status
-    from .lines import tile_sums
-    from .resample import poly_grid
+    from .lines import field_window, tile_sums
 
     r0, r1, c0, c1 = window
     zarr.open_group(state, mode="r+")["field"][:, r0:r1, c0:c1] = block
     if mapping is None:
         return None
     # the row sums of the field as dense_field returns it: the polynomial where not usable
-    px, py = (poly_grid(mapping, (r0, r1), (c0, c1), k).astype(np.float32) for k in (0, 1))
-    status = block[2].astype(np.uint8)
-    good = (status == Status.MATCHED) | (status == Status.FILLED)
-    dx, dy = (np.where(good, block[k], p).astype(np.float32) for k, p in ((0, px), (1, py)))
+    dx, dy, px, py, status, _ = field_window(block, mapping, (r0, r1), (c0, c1))
     return tile_sums(dx, dy, px, py, status, block[3], block[4], col0=c0, width=width)
 
 

@@ -45,6 +45,20 @@ def tile_sums(dx, dy, px, py, status, sigma_x, sigma_y, *, col0: int, width: int
     return np.concatenate([lines, fits])[..., None]
 
 
+def field_window(stack: np.ndarray, mapping: PolyMap, rows: tuple[int, int], cols: tuple[int, int]) -> tuple:
+    """A window of the stored dense field (``stack``: dx, dy, status, ... over ``rows`` x ``cols``)
+    as :func:`geocoder.pipeline.dense.dense_field` returns it: float32 ``dx, dy`` (the
+    polynomial where not matched or filled), the polynomial ``px, py``, uint8 ``status`` and
+    the usable mask."""
+    from .resample import poly_grid
+
+    px, py = (poly_grid(mapping, rows, cols, k).astype(np.float32) for k in (0, 1))
+    status = stack[2].astype(np.uint8)
+    good = (status == Status.MATCHED) | (status == Status.FILLED)
+    dx, dy = (np.where(good, stack[k], p).astype(np.float32) for k, p in ((0, px), (1, py)))
+    return dx, dy, px, py, status, good
+
+
 def _block_sums(dx, dy, px, py, status, sigma_x, sigma_y, block_info=None, *, width: int):
     col0 = block_info[0]["array-location"][1][0]
     return tile_sums(dx, dy, px, py, status, sigma_x, sigma_y, col0=col0, width=width)
@@ -151,17 +165,12 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
                 options: LineOptions, shrink: bool, correlation: int) -> np.ndarray:
     import zarr
 
-    from .resample import poly_grid
-
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
     smooth = options.smooth // 2 + 1 if options.smooth else 0
     reach = options.max_hole + options.edge + 1 + smooth
     a, b = max(c0 - reach, 0), min(c1 + reach, width)
     f = zarr.open_group(store, mode="r")["field"][:, r0:r1, a:b]
-    px, py = (poly_grid(mapping, (r0, r1), (a, b), k).astype(np.float32) for k in (0, 1))
-    status = f[2].astype(np.uint8)
-    good = (status == Status.MATCHED) | (status == Status.FILLED)
-    dx, dy = (np.where(good, f[k], p).astype(np.float32) for k, p in ((0, px), (1, py)))
+    dx, dy, px, py, status, good = field_window(f, mapping, (r0, r1), (a, b))
     sx, sy, rho = f[3], f[4], f[5]
     holes = _hole_block(np.stack([dx, dy, px, py, status.astype(np.float32), sx, sy]).astype(np.float32),
                         max_hole=options.max_hole, edge=options.edge)
