@@ -5,7 +5,8 @@
 which cannot follow an airborne strip's scan-line turbulence. Here such a scene is matched
 densely against a *neighbour composite*: its already-refined neighbours brought onto the
 reference's pixel grid through their dense fields, radiometrically balanced, each pixel from
-the neighbour that sees it nearest its centre among those whose field matched or filled it
+the neighbour that sees it nearest its centre among those whose field matched, filled or
+estimated it (:mod:`geocoder.mosaic.scanlines`)
 (where a neighbour has only its model, its turbulence is in it: the scene keeps its own model
 there). The dense stage then runs exactly as against the reference (same grid,
 predicted by the scene's adjusted model), seeded by the scene's tie points with those
@@ -230,7 +231,7 @@ def _composite_tile(store: str, window: tuple[int, int, int, int], transform: Af
         x, y = _scene_xy(model, params, transform, window, located, (0, 0), heights)
         s = centre_score(x, y, shape)
         codes = field_layers(located, window, (0, 0))[0]
-        take = (s <= 1.0) & (s < best) & ((codes == Status.MATCHED) | (codes == Status.FILLED))
+        take = (s <= 1.0) & (s < best) & ((codes == Status.MATCHED) | (codes == Status.FILLED) | (codes == Status.ESTIMATED))
         if not take.any():
             continue
         v = gain[:, 0, None, None] * reader.sample(x, y, method=method) + gain[:, 1, None, None]

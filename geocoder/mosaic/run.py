@@ -333,7 +333,7 @@ def _scene_xy(model, params, transform: Affine | Reprojected, window: tuple[int,
         return x, y
     g = zarr.open_group(located["store"], mode="r")
     dx, dy, status = (np.asarray(g[n][a0:a1, b0:b1]) for n in ("dx", "dy", "status"))
-    good = (status == Status.MATCHED) | (status == Status.FILLED)
+    good = (status == Status.MATCHED) | (status == Status.FILLED) | (status == Status.ESTIMATED)
     sl = (slice(a0 - fr0, a1 - fr0), slice(b0 - fc0, b1 - fc0))
     rx = np.arange(b0, b1)[None, :] + located["col0"]  # reference pixel of each field sample
     ry = np.arange(a0, a1)[:, None] + located["row0"]
@@ -1019,7 +1019,22 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
         group = f"dense/{n}{tag}"
         if not sub.done("field"):
             rows = (tuple(grid.rows[ia:ib]), (c1 - c0,))  # whole rows of the footprint: carried along them
-            parts = [a[r0:r1, c0:c1].rechunk(rows) for a in (field_["dx"], field_["dy"], field_["status"], pdx, pdy)]
+            # the matched field once into the sub-job (the scene rows' sums and the estimates read it)
+            raw = sub.file("matched.zarr")
+            if not sub.done("matched"):
+                xr.Dataset({name: (("y", "x"), field_[name][r0:r1, c0:c1].rechunk(rows))
+                            for name in ("dx", "dy", "status", "sigma_x", "sigma_y")}).to_zarr(
+                    raw, mode="w", zarr_format=3, consolidated=False)
+                sub.save("matched")
+            matched = xr.open_zarr(raw, zarr_format=3, consolidated=False, chunks={"y": rows[0], "x": rows[1]})
+            parts = [matched[name].data for name in ("dx", "dy", "status")] + [a[r0:r1, c0:c1].rechunk(rows) for a in (pdx, pdy)]
+            # unmatched pixels: the model plus the field's smooth correction and their scene row's shift
+            # (geocoder.mosaic.scanlines); what is left (rows without matches), from the nearest match
+            # along the reference row, then along the column
+            table = _scene_line_table(parts, r0, c0, shape)
+            est = da.map_blocks(_estimate_block, *parts, table=table, row0=r0, col0=c0, shape=shape,
+                                new_axis=0, chunks=((3,), *rows), dtype=np.float32)
+            parts = [est[0], est[1], est[2], *parts[3:]]
             carried = da.map_blocks(carry_along_rows, *parts, max_px=CARRY_PX, new_axis=0, chunks=((3,), *rows),
                                     dtype=np.float32)
             # rows with no match at all (the template's margin at a scene's top and bottom): from the next rows
@@ -1029,11 +1044,13 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
             part = xr.Dataset(
                 {"dx": (("y", "x"), carried[0]), "dy": (("y", "x"), carried[1]),
                  "status": (("y", "x"), carried[2].astype(np.uint8)),
-                 **{name: (("y", "x"), (field_[name] if sigma_known else da.full_like(field_[name], np.nan))[r0:r1, c0:c1]
-                          .rechunk(rows)) for name in ("sigma_x", "sigma_y")}},
+                 **{name: (("y", "x"), matched[name].data if sigma_known else da.full_like(matched[name].data, np.nan))
+                    for name in ("sigma_x", "sigma_y")}},
                 attrs={"row0": r0, "col0": c0, "long_name": "displacement reference pixel -> scene pixel",
-                       "filled": f"matched, or filled along the row (short holes interpolated by the post-filter, "
-                                 f"other pixels within {CARRY_PX} px of a match carried from the nearest one)",
+                       "filled": "matched; FILLED: short holes interpolated by the post-filter; ESTIMATED: the model "
+                                 "plus the field's smooth correction along the scene rows and the row's own shift "
+                                 "(geocoder.mosaic.scanlines); FILLED also where a scene row has no shift: the "
+                                 f"correction of the nearest match within {CARRY_PX} px of the reference row",
                        "sigma": "sigma_x, sigma_y: standard deviations of the matched pixels' dx, dy (NaN elsewhere)"
                                 if sigma_known else "sigma_x, sigma_y: unknown (NaN): matched against refined neighbours, "
                                 "whose own error the match's sigma leaves out (5x optimistic, measured)"})
@@ -1046,6 +1063,30 @@ def _refine(job: Job, key: str, store: str, n: int, ref, ref_reader, reader, mod
 
 #: Largest distance (px) along a row over which a dense correction is carried from the nearest match.
 CARRY_PX = 64
+
+def _scene_line_table(parts: list, row0: int, col0: int, shape: tuple[int, int]) -> np.ndarray:
+    """Corrections per scene row (:func:`geocoder.mosaic.scanlines.line_table`) of a footprint's
+    field, from the row bands' sums (gathered: a few numbers per scene row)."""
+    from .scanlines import combine_line_sums, line_table, scene_line_sums
+
+    starts = row0 + np.r_[0, np.cumsum(parts[0].chunks[0])[:-1]]
+    blocks = [p.to_delayed()[:, 0] for p in parts]
+    sums = [dask.delayed(scene_line_sums)(*(b[k] for b in blocks), row0=int(starts[k]), col0=col0, shape=shape)
+            for k in range(len(starts))]
+    total = dask.delayed(lambda *s: combine_line_sums(np.stack(s, axis=-1)))(*sums).compute()
+    return line_table(total, min_count=LINE_MIN_COUNT, max_gap=CARRY_ROWS, end_rows=CARRY_ROWS)
+
+
+#: Fewest matches a scene row needs for a correction of its own.
+LINE_MIN_COUNT = 16
+
+
+def _estimate_block(dx, dy, status, pdx, pdy, block_info=None, *, table: np.ndarray, row0: int, col0: int,
+                    shape: tuple[int, int]) -> np.ndarray:
+    from .scanlines import line_estimates
+
+    row0 += block_info[0]["array-location"][0][0]
+    return line_estimates(dx, dy, status, pdx, pdy, table, row0=row0, col0=col0, shape=shape)
 
 
 def carry_along_rows(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.ndarray, pdy: np.ndarray, *,
@@ -1067,7 +1108,7 @@ def carry_along_rows(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np
     dl = np.where(left >= 0, col - left, 2 * w)
     dr = np.where(right < w, right - col, 2 * w)
     near = np.where(dl <= dr, left, right)
-    carry = ~good & (np.minimum(dl, dr) <= max_px)
+    carry = ~good & (status != Status.ESTIMATED) & (np.minimum(dl, dr) <= max_px)
     src = np.clip(near, 0, w - 1)
     cx = np.take_along_axis(np.asarray(dx - pdx), src, axis=1)
     cy = np.take_along_axis(np.asarray(dy - pdy), src, axis=1)
