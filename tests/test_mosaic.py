@@ -85,6 +85,21 @@ def test_block_mosaic_against_truth(block, client, tmp_path):
     assert after < 0.2 * before
     gains = np.array(json.loads(ds.attrs["radiometry"]))[:, 0]
     np.testing.assert_allclose(gains[:, 0], 1 / (1.1 + 0.05 * np.arange(4)), rtol=0.02)
+    # per-point precision (a block this small has the covariances) and what the adjustment left out
+    import xarray as xr
+
+    points = xr.open_zarr(out, group="points", consolidated=False)
+    tie = points.control.values == 0
+    assert tie.sum() > 50 and np.mean(points.rays.values[tie] >= 2) > 0.95  # a tie seen once: its other ray left out
+    sigma = np.fmax(points.sigma_x.values, points.sigma_y.values)
+    assert np.isfinite(sigma).all() and np.isfinite(points.max_w.values).any()
+    median, p95, largest = s["point_sigma_px"]["tie"]
+    assert 0.0 < median <= p95 <= largest < 0.5 and median < 0.05, s["point_sigma_px"]
+    assert median == pytest.approx(float(np.median(sigma[tie])), rel=1e-3)
+    # a tie point seen in three scenes is placed better than the median one seen in two
+    assert np.median(sigma[tie & (points.rays.values >= 3)]) < np.median(sigma[tie & (points.rays.values == 2)])
+    assert set(s["rejected"]) == {"robust", "snooping"} and min(s["rejected"].values()) >= 0
+    assert np.nanmax(points.max_w.values[tie]) < 3.29 + 1e-6 or s["rejected"]["snooping"] == 10  # snooped to the bound
 
 
 def test_sparse_control_is_carried_by_tie_points(block, client, tmp_path):

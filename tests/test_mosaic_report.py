@@ -67,8 +67,17 @@ def test_report_from_the_store(block, client, tmp_path):
     s = json.loads(ds.attrs["summary"])
     assert len(s["block"]) == 4 and len(s["pairs"]) == 6
     out = write_report(store, tmp_path / "report", max_size=200)
-    assert sorted(p.name for p in (tmp_path / "report").iterdir()) == sorted([*FIGURES, "geocoder.json", "report.md"])
+    assert sorted(p.name for p in (tmp_path / "report").iterdir()) == sorted([*FIGURES, "geocoder.json", "points.csv",
+                                                                              "report.md"])
     md = (tmp_path / "report" / "report.md").read_text()
+    # every adjusted ground point, as the store has them, and their precision summarised
+    points = np.genfromtxt(tmp_path / "report" / "points.csv", delimiter=",", names=True)
+    assert points.size == sum(int(v) for v in s["rays"].values()) and points.dtype.names[:3] == ("x", "y", "control")
+    tie = points["control"] == 0
+    median = float(_table(md, "| points | median |")[0][1])
+    assert _table(md, "| points | median |")[0][0] == "tie" and median == pytest.approx(s["point_sigma_px"]["tie"][0], abs=1e-4)
+    assert 0 < np.median(np.fmax(points["sigma_x"], points["sigma_y"])[tie]) < 0.05
+    assert re.search(r"Observations left out: \d+ by the robust re-weighting, \d+ by data snooping", md)
     # drawn from an overview level (the mosaic is about 370 px; the 1:2 level is the coarsest >= 200 px), not the root
     assert "overview at 1:2" in md
     scenes = _table(md, "| scene | file |")

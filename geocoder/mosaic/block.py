@@ -186,12 +186,14 @@ def build_problem(shapes: list[tuple[int, int]], approx: list[Callable], control
 
 
 def solve(problem: Problem, *, robust: bool = True, height: Callable | None = None) -> AdjustResult:
-    """Adjust the block (robust re-weighting, eq 20b then 22b), covariances when small enough.
+    """Adjust the block (robust re-weighting, eq 20b then 22b, then Baarda's data snooping), with
+    covariances, redundancy numbers and the snooping when the block is small enough for the
+    dense inverse (:class:`~geocoder.adjust.solver.AdjustOptions` ``max_dense_unknowns``).
 
     With ``height`` (the DEM), the tie points' heights are held to the DEM where the first
     adjustment put them, and the block is adjusted once more from there.
     """
-    options = AdjustOptions(max_iter=20, tol=1e-8, robust=robust, damping=1e-6)
+    options = AdjustOptions(max_iter=20, tol=1e-8, robust=robust, damping=1e-6, snooping=robust)
     result = adjust(problem, options)
     if height is None:
         return result
@@ -204,3 +206,41 @@ def solve(problem: Problem, *, robust: bool = True, height: Callable | None = No
     again = replace(problem, frames=[replace(f, params=p) for f, p in zip(problem.frames, result.params)],
                     ground=result.ground.copy(), ground_prior=prior)
     return adjust(again, options)
+
+
+#: :func:`point_table` columns, in this order.
+POINT_COLUMNS = ("x", "y", "control", "rays", "sigma_x", "sigma_y", "max_w")
+
+
+def point_table(problem: Problem, result: AdjustResult, pixel_size: float) -> np.ndarray:
+    """Every ground point of the adjusted block with its precision.
+
+    Parameters
+    ----------
+    problem, result : Problem, AdjustResult
+        The block and its adjustment.
+    pixel_size : float
+        Map units per reference pixel (the precisions are given in reference pixels).
+
+    Returns
+    -------
+    ndarray (P, 7)
+        :data:`POINT_COLUMNS`: the adjusted map position; 1 for a control point (its map
+        position observed), 0 for a tie point; the scenes whose kept observations see it; the
+        standard deviations of its adjusted map position (reference px; NaN without the
+        covariances: a block too large for the dense inverse); the largest normalised residual
+        (Baarda's w) of its kept observations (NaN without).
+    """
+    npts = len(problem.ground_prior)
+    control = problem.ground_weight[:, 0, 0] > 0
+    keep = result.obs_active
+    rays = np.bincount(problem.obs_point[keep], minlength=npts)
+    sigma = np.full((npts, 2), np.nan)
+    if result.ground_cov is not None:
+        var = np.stack([result.ground_cov[:, 0, 0], result.ground_cov[:, 1, 1]], axis=1)
+        sigma = np.sqrt(np.clip(var, 0.0, None)) / pixel_size
+    max_w = np.full(npts, np.nan)
+    if result.normalized_residuals is not None:
+        np.fmax.at(max_w, problem.obs_point, np.where(keep, result.normalized_residuals, np.nan))
+    return np.column_stack([result.ground[:, 0], result.ground[:, 1], control.astype(float), rays.astype(float),
+                            sigma, max_w])

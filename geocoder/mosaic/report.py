@@ -173,7 +173,24 @@ def _fmt(v, digits: int = 3) -> str:
     return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v:.{digits}f}"
 
 
-def _markdown(s: MosaicSummary, gains: np.ndarray | None, factor: int, arrow_scale: float) -> str:
+def _write_points(store: str, path: Path) -> bool:
+    """The store's adjusted ground points (group ``points``) as CSV; False if it has none."""
+    import zarr
+
+    from .block import POINT_COLUMNS
+
+    try:
+        group = zarr.open_group(store, path="points", mode="r")
+    except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError):
+        return False
+    table = np.column_stack([np.asarray(group[name][:]) for name in POINT_COLUMNS])
+    np.savetxt(path, table, delimiter=",", header=",".join(POINT_COLUMNS), comments="",
+               fmt=["%.4f", "%.4f", "%d", "%d", "%.5f", "%.5f", "%.3f"])
+    return True
+
+
+def _markdown(s: MosaicSummary, gains: np.ndarray | None, factor: int, arrow_scale: float,
+              has_points: bool = False) -> str:
     name = [os.path.basename(str(v)) for v in s.scenes]
     lines = [
         "# Mosaic report", "",
@@ -210,6 +227,17 @@ def _markdown(s: MosaicSummary, gains: np.ndarray | None, factor: int, arrow_sca
     lines += ["", "![residuals](residuals.png)", "",
               (f"Vectors: the mean residual of a scene's observations in each of 3 x 3 cells, drawn {arrow_scale:.0f} "
                "times longer."), ""]
+    if s.rejected:
+        lines += [(f"Observations left out: {s.rejected.get('robust', 0)} by the robust re-weighting, "
+                   f"{s.rejected.get('snooping', 0)} by data snooping (Baarda, w > 3.29)."), ""]
+    if s.point_sigma_px:
+        lines += ["Precision of the adjusted ground points (standard deviation of the map position, the larger axis, "
+                  "reference pixels):", "", "| points | median | 95 % | max |", "|---|---:|---:|---:|",
+                  *(f"| {k} | {_fmt(v[0], 4)} | {_fmt(v[1], 4)} | {_fmt(v[2], 4)} |" for k, v in s.point_sigma_px.items()),
+                  ""]
+    if has_points:
+        lines += ["Every ground point: [points.csv](points.csv) (map position, control or tie, the scenes that see it, "
+                  "sigma_x and sigma_y in reference pixels, the largest normalised residual of its observations).", ""]
     lines += [
         "## Seams", "",
         (f"Seamlines: {s.seam_mode}"
@@ -278,7 +306,8 @@ def write_report(source, directory: str | os.PathLike, *, overwrite: bool = Fals
         arrow_scale = _figure_residuals(plt, out / "residuals.png", summary, image, factor)
         _figure_seams(plt, out / "seams.png", summary, image, src, factor)
         _figure_mismatch(plt, out / "seam_mismatch.png", summary)
-        (out / "report.md").write_text(_markdown(summary, gains, factor, arrow_scale), encoding="utf-8")
+        has_points = store is not None and _write_points(store, out / "points.csv")
+        (out / "report.md").write_text(_markdown(summary, gains, factor, arrow_scale, has_points), encoding="utf-8")
         write_marker(tmp, PRODUCT)
         commit_output(tmp, final, overwrite=overwrite)
     except BaseException:

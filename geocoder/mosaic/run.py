@@ -59,7 +59,7 @@ from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
 from ..status import Status
 from ..tiles import TileGrid
-from .block import Matches, build_problem, connected_scenes, solve
+from .block import POINT_COLUMNS, Matches, build_problem, connected_scenes, point_table, solve
 from .compose import NO_SOURCE, blend, centre_score
 from .control import DEFAULT_SIGMA_PX, read_control
 from .dense_neighbours import refine_by_neighbours
@@ -157,6 +157,14 @@ class MosaicSummary:
         Per scene, the RMS residual (scene pixels) of those points: their measured pixel
         against their map coordinates through the adjusted model (NaN without points or out
         of the block).
+    rejected : dict
+        Image observations the adjustment left out: ``robust`` (by the robust re-weighting)
+        and ``snooping`` (by Baarda's data snooping after it, one per round).
+    point_sigma_px : dict
+        ``tie`` and ``control``: the median, 95th percentile and largest standard deviation
+        (reference pixels, the larger of x and y) of the adjusted ground points' map
+        positions; empty when the block was too large for the covariances. Every point's are
+        in the store's group ``points`` (:func:`geocoder.mosaic.block.point_table`).
     """
 
     scenes: list[str]
@@ -187,6 +195,8 @@ class MosaicSummary:
     given_file: str = ""
     given_points: list[int] = field(default_factory=list)
     given_rmse_px: list[float] = field(default_factory=list)
+    rejected: dict = field(default_factory=dict)
+    point_sigma_px: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -206,6 +216,11 @@ class MosaicSummary:
             "ground points by rays: " + ", ".join(f"{k}: {v}" for k, v in self.rays.items()),
             f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
             + ", ".join(f"{r:.3f}" for r in self.rms_px),
+            *([f"observations left out: {self.rejected.get('robust', 0)} by the robust weights, "
+               f"{self.rejected.get('snooping', 0)} by data snooping"] if self.rejected else []),
+            *([f"ground point precision (reference px, median / 95 % / max): "
+               + ", ".join(f"{k} {v[0]:.3f} / {v[1]:.3f} / {v[2]:.3f}" for k, v in self.point_sigma_px.items())]
+              if self.point_sigma_px else []),
             *([f"control points from {self.given_file}: {sum(self.given_points)} used, per scene {self.given_points}, "
                "RMS residual per scene (px) " + ", ".join(f"{r:.3f}" for r in self.given_rmse_px)] if self.given_file else []),
             *([f"check points (withheld): {sum(self.check_points)}, RMS residual per scene (px) "
@@ -265,6 +280,17 @@ def _adjustment_figures(summary: MosaicSummary, problem, result, models: list, s
             cx, cy = to_out[n](np.array([b[0] for b in bins]), np.array([b[1] for b in bins]))
             bins = [[round(float(x), 2), round(float(y), 2), *b[2:]] for x, y, b in zip(cx, cy, bins)]
         summary.residual_bins.append(bins)
+
+
+def _point_sigma(points: np.ndarray) -> dict:
+    """Median, 95th percentile and largest point sigma (the larger axis) of tie and control points."""
+    sigma = np.fmax(points[:, 4], points[:, 5])
+    out = {}
+    for name, kind in (("tie", 0.0), ("control", 1.0)):
+        v = sigma[(points[:, 2] == kind) & np.isfinite(sigma)]
+        if v.size:
+            out[name] = [round(float(np.median(v)), 5), round(float(np.percentile(v, 95)), 5), round(float(v.max()), 5)]
+    return out
 
 
 def _seam_figures(summary: MosaicSummary, stats: list[dict], block: list[int], problem, result) -> None:
@@ -789,6 +815,10 @@ def mosaic(
             )
             result = job.cached("adjustment", lambda: solve(problem, height=heights))
         summary.sigma0, summary.iterations = float(result.sigma0), int(result.iterations)
+        points = point_table(problem, result, abs(transform.a))
+        summary.rejected = {"robust": int((~result.obs_active).sum()) - int(result.n_snooped),
+                            "snooping": int(result.n_snooped)}
+        summary.point_sigma_px = _point_sigma(points)
         rays = np.bincount(np.bincount(problem.obs_point))
         summary.rays = {str(k): int(v) for k, v in enumerate(rays) if v and k}
         summary.rms_px = [float(np.sqrt(np.mean(np.sum(result.residuals[(problem.obs_frame == n) & result.obs_active] ** 2, 1))))
@@ -821,6 +851,10 @@ def mosaic(
         if not job.done("output-created"):
             ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
             job.save("output-created")
+        xr.Dataset({name: ("point", points[:, k]) for k, name in enumerate(POINT_COLUMNS)},
+                   attrs={"long_name": "adjusted ground points (geocoder.mosaic.block.point_table)",
+                          "units": "x, y: map units of the reference's CRS; sigma_x, sigma_y: reference pixels"}
+                   ).to_zarr(store, group="points", mode="w", zarr_format=3, consolidated=False)
         fields: list = [None] * len(block)
         if dense:
             with timer("dense refinement"):
