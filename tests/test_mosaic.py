@@ -19,6 +19,7 @@ from geocoder.quality.accuracy import mosaic_errors
 from geocoder.scene import world_to_pixel, write_geotiff
 from geocoder.simulate.block import BlockScene, render
 from geocoder.simulate.texture import synthetic_ortho
+from geocoder.status import Status
 
 pytestmark = pytest.mark.cluster
 
@@ -178,11 +179,42 @@ def test_dense_refinement_follows_scan_line_turbulence(client, tmp_path):
                                   positions=scene_positions(ds, out))
         own = own[np.isfinite(own)]
         figures[dense] = (float(np.sqrt(np.mean(own**2))), float(np.sqrt(np.mean(seam**2))), float(np.mean(own > 1.0)))
-    print("model only (rmse, seam rms, share > 1 px):", figures[False], "dense:", figures[True])
+    # on another CRS (UTM zone 34, 6 degrees west) at another pixel (3 m): the fields sampled where the
+    # output pixels fall on the reference's grid
+    out = tmp_path / "m-utm34.zarr"
+    ds = mosaic(paths, reference=tmp_path / "ortho.tif", out=out, tile=128, client=client, dense=True,
+                crs="EPSG:32634", resolution=3.0)
+    assert ds.rio.crs.to_epsg() == 32634 and ds.rio.transform().a == 3.0
+    err = _reprojected_errors(ds, out, scenes)
+    figures["utm34"] = (float(np.sqrt(np.nanmean(err**2))), float(np.nanmean(err > 1.0)))
+    print("model only (rmse, seam rms, share > 1 px):", figures[False], "dense:", figures[True],
+          "dense on EPSG:32634 at 3 m (rmse, share > 1 output px):", figures["utm34"])
     assert figures[False][0] > 0.5  # the turbulence is there, and the models cannot follow it
     assert figures[True][0] <= 0.3
     assert figures[True][1] <= 0.2
     assert figures[True][0] < figures[False][0] / 2
+    assert np.isfinite(err).mean() > 0.4 and figures["utm34"][0] <= 0.3 * 2 / 3  # 3 m output pixels
+    status = ds.status.values[np.isfinite(err)]
+    assert np.mean((status == Status.MATCHED) | (status == Status.FILLED) | (status == Status.ESTIMATED)) > 0.9
+
+
+def _reprojected_errors(ds, store, scenes) -> np.ndarray:
+    """Per covered output pixel of a mosaic on another grid, its distance (output px) from where the
+    truth puts the scene position the mosaic sampled there; NaN elsewhere."""
+    from pyproj import Transformer
+
+    from geocoder.geometry import pixel_to_world, world_to_pixel
+    from geocoder.mosaic import scene_positions
+
+    to_out = Transformer.from_crs("EPSG:32633", ds.rio.crs, always_xy=True)
+    src = ds.source.values
+    rows, cols = np.indices(src.shape)
+    err = np.full(src.shape, np.nan)
+    for n, (x, y) in enumerate(scene_positions(ds, store)):
+        sel = src == n
+        c, r = world_to_pixel(ds.rio.transform(), *to_out.transform(*pixel_to_world(ORTHO, *scenes[n].to_ortho(x[sel], y[sel]))))
+        err[sel] = np.hypot(c - cols[sel], r - rows[sel])
+    return err
 
 
 def test_check_points_are_withheld_and_reported(block, tmp_path, client):

@@ -114,8 +114,6 @@ def test_output_over_the_csv_is_refused(files, tmp_path):
 
 def test_grid_options_refused_where_they_cannot_work(files):
     d, paths = files
-    with pytest.raises(ValueError, match="dense refinement needs the reference's grid"):
-        mosaic(paths, reference=d / "ortho.tif", resolution=4.0, dense=True)
     with pytest.raises(ValueError, match="resolution must be a positive number"):
         mosaic(paths, reference=d / "ortho.tif", resolution=0.0)
     with pytest.raises(InputError, match="is not georeferenced"):  # a scene without georeference as the reference

@@ -160,8 +160,82 @@ def scene_uncertainty(problem, result, scenes: int) -> tuple[list | None, np.nda
     return covs, unmodelled
 
 
-def field_layers(located: dict | None, window: tuple[int, int, int, int], origin: tuple[int, int]
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sample_field(located: dict, rx: np.ndarray, ry: np.ndarray) -> tuple[np.ndarray, ...]:
+    """A scene's dense field at fractional reference pixels (an output grid of another pixel or CRS).
+
+    ``dx, dy`` are interpolated bilinearly where the four samples around a point are usable
+    (matched, filled or estimated), taken from the nearest sample where only it is; the
+    status and the sigmas are the nearest sample's. Only the window of the field the points
+    span is read.
+
+    Parameters
+    ----------
+    located : dict
+        Where the field is (:func:`geocoder.mosaic.run._refine`).
+    rx, ry : ndarray
+        Reference pixel coordinates (column, row; pixel centres at integers).
+
+    Returns
+    -------
+    dx, dy : ndarray
+        Displacement reference pixel -> scene pixel (0 where not ``good``).
+    good : ndarray of bool
+        Where the field gives the position.
+    status : ndarray of uint8
+        The nearest sample's status (``OUTSIDE`` beyond the field).
+    sigma_x, sigma_y : ndarray of float32
+        The nearest sample's (NaN beyond the field).
+    """
+    import zarr
+
+    fx = np.asarray(rx, dtype=np.float64) - located["col0"]
+    fy = np.asarray(ry, dtype=np.float64) - located["row0"]
+    h, w = located["shape"]
+    dx, dy = np.zeros(fx.shape), np.zeros(fx.shape)
+    good = np.zeros(fx.shape, dtype=bool)
+    status = np.full(fx.shape, Status.OUTSIDE, dtype=np.uint8)
+    sx = np.full(fx.shape, np.nan, dtype=np.float32)
+    sy = sx.copy()
+    finite = np.isfinite(fx) & np.isfinite(fy)
+    if not finite.any():
+        return dx, dy, good, status, sx, sy
+    a0 = int(np.clip(np.floor(fy[finite].min()), 0, h))
+    a1 = int(np.clip(np.floor(fy[finite].max()) + 2, 0, h))
+    b0 = int(np.clip(np.floor(fx[finite].min()), 0, w))
+    b1 = int(np.clip(np.floor(fx[finite].max()) + 2, 0, w))
+    if a0 >= a1 or b0 >= b1:
+        return dx, dy, good, status, sx, sy
+    g = zarr.open_group(located["store"], mode="r")
+    wdx, wdy, wst, wsx, wsy = (np.asarray(g[n][a0:a1, b0:b1]) for n in ("dx", "dy", "status", "sigma_x", "sigma_y"))
+    usable = (wst == Status.MATCHED) | (wst == Status.FILLED) | (wst == Status.ESTIMATED)
+    hh, ww = wst.shape
+
+    def at(i, j):
+        inside = finite & (i >= 0) & (i < hh) & (j >= 0) & (j < ww)
+        return inside, np.where(inside, i, 0), np.where(inside, j, 0)
+
+    fy0, fx0 = np.floor(np.nan_to_num(fy)), np.floor(np.nan_to_num(fx))
+    ty, tx = np.nan_to_num(fy) - fy0, np.nan_to_num(fx) - fx0
+    i0, j0 = fy0.astype(np.int64) - a0, fx0.astype(np.int64) - b0
+    near, ni, nj = at(np.rint(np.nan_to_num(fy)).astype(np.int64) - a0, np.rint(np.nan_to_num(fx)).astype(np.int64) - b0)
+    status = np.where(near, wst[ni, nj], status).astype(np.uint8)
+    sx = np.where(near, wsx[ni, nj], sx).astype(np.float32)
+    sy = np.where(near, wsy[ni, nj], sy).astype(np.float32)
+    near_ok = near & usable[ni, nj]
+    ok4 = np.ones(fx.shape, dtype=bool)
+    vx, vy = np.zeros(fx.shape), np.zeros(fx.shape)
+    for di, dj, wt in ((0, 0, (1 - ty) * (1 - tx)), (0, 1, (1 - ty) * tx), (1, 0, ty * (1 - tx)), (1, 1, ty * tx)):
+        inside, ii, jj = at(i0 + di, j0 + dj)
+        ok4 &= inside & usable[ii, jj]
+        vx += wt * np.where(inside, wdx[ii, jj], 0.0)
+        vy += wt * np.where(inside, wdy[ii, jj], 0.0)
+    dx = np.where(ok4, vx, np.where(near_ok, wdx[ni, nj], 0.0))
+    dy = np.where(ok4, vy, np.where(near_ok, wdy[ni, nj], 0.0))
+    return dx, dy, ok4 | near_ok, status, sx, sy
+
+
+def field_layers(located: dict | None, window: tuple[int, int, int, int], origin: tuple[int, int] | Affine,
+                 grid: Affine | Reprojected | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Status and matching sigmas of a scene's dense field over an output window.
 
     Parameters
@@ -171,8 +245,12 @@ def field_layers(located: dict | None, window: tuple[int, int, int, int], origin
         ``col0``, ``shape``); None: the scene has no field.
     window : tuple of int
         ``row0, row1, col0, col1`` in output pixels.
-    origin : tuple of int
-        The output grid's pixel ``(0, 0)`` in reference pixels (``col, row``).
+    origin : tuple of int or Affine
+        The output grid's pixel ``(0, 0)`` in reference pixels (``col, row``); or, for an
+        output grid of another pixel size or CRS, the reference's transform (every output
+        pixel is then mapped through the map to the reference's pixels, :func:`sample_field`).
+    grid : Affine or Reprojected, optional
+        The output grid (needed with a transform as ``origin``).
 
     Returns
     -------
@@ -189,6 +267,13 @@ def field_layers(located: dict | None, window: tuple[int, int, int, int], origin
     sy = sx.copy()
     if located is None:
         return status, sx, sy
+    if isinstance(origin, Affine):
+        from ..geometry import world_to_pixel
+
+        ys, xs = np.mgrid[r0:r1, c0:c1].astype(np.float64)
+        rx, ry = world_to_pixel(origin, *to_map(grid, xs, ys))
+        _, _, _, st, sx, sy = sample_field(located, rx, ry)
+        return np.where(st == Status.OUTSIDE, Status.MODEL, st).astype(np.uint8), sx, sy
     fr0, fc0 = r0 + origin[1] - located["row0"], c0 + origin[0] - located["col0"]
     a0, a1 = max(fr0, 0), min(fr0 + (r1 - r0), located["shape"][0])
     b0, b1 = max(fc0, 0), min(fc0 + (c1 - c0), located["shape"][1])

@@ -65,7 +65,7 @@ from .control import DEFAULT_SIGMA_PX, read_control
 from .dense_neighbours import refine_by_neighbours
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
 from .heights import MapDEM, ref_to_scene_prior
-from .layers import field_layers, model_layers, pixel_sigma, scene_uncertainty
+from .layers import field_layers, model_layers, pixel_sigma, sample_field, scene_uncertainty
 from .matching import PairSpec, match_pairs, scene_points
 from .outgrid import Reprojected, from_map, other_grid, to_map
 from .placement import Placement, affine_between, footprint_from_model, overlap_fraction, place_by_neighbours
@@ -334,12 +334,14 @@ def _output_crs(ref: xr.DataArray, reference, resolution: float | None, crs) -> 
 
 
 def _scene_xy(model, params, transform: Affine | Reprojected, window: tuple[int, int, int, int], located: dict | None,
-              origin: tuple[int, int], heights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              origin: tuple[int, int] | Affine, heights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Position in one scene of every pixel of an output window: its adjusted model, or its
     dense field where that matched or filled the pixel.
 
     ``transform``: the output grid (an affine, or :class:`~geocoder.mosaic.outgrid.Reprojected`);
-    ``origin``: the output grid's pixel (0, 0) in reference pixels (``col, row``);
+    ``origin``: the output grid's pixel (0, 0) in reference pixels (``col, row``), or the
+    reference's transform for an output grid of another pixel size or CRS (the field is then
+    sampled at each output pixel's reference position, :func:`~geocoder.mosaic.layers.sample_field`);
     ``heights``: the window's ground heights (the DEM's; 0 without).
     """
     import zarr
@@ -351,6 +353,10 @@ def _scene_xy(model, params, transform: Affine | Reprojected, window: tuple[int,
     x, y = project_window(model, params, ex, ny, hz)
     if located is None:
         return x, y
+    if isinstance(origin, Affine):  # another pixel size or CRS: the field sampled at the reference pixels
+        rx, ry = world_to_pixel(origin, ex, ny)
+        dx, dy, good, *_ = sample_field(located, rx, ry)
+        return np.where(good, rx + dx, x), np.where(good, ry + dy, y)
     # the window in the field's frame (reference pixels, offset by the field's origin)
     fr0, fc0 = r0 + origin[1] - located["row0"], c0 + origin[0] - located["col0"]
     a0, a1 = max(fr0, 0), min(fr0 + (r1 - r0), located["shape"][0])
@@ -370,7 +376,7 @@ def _scene_xy(model, params, transform: Affine | Reprojected, window: tuple[int,
 
 def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine | Reprojected, models: list, readers: list,
                  shapes: list, feather_px: float, method: str, balance: np.ndarray, fields: list,
-                 origin: tuple[int, int], boxes: np.ndarray, seams: dict | None = None,
+                 origin: tuple[int, int] | Affine, boxes: np.ndarray, seams: dict | None = None,
                  grid_shape: tuple[int, int] | None = None, dem=None, covs: list | None = None,
                  unmodelled: np.ndarray | None = None) -> dict:
     """Compute and write one output tile; returns the pixels covered and its seam statistics.
@@ -421,7 +427,7 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
             continue
         scores[i] = np.where(s <= 1.0, s, np.nan)
         values[i] = balance[k, :, 0, None, None] * reader.sample(x, y, method=method) + balance[k, :, 1, None, None]
-        codes[i], sx, sy = field_layers(fields[k], ext, origin)
+        codes[i], sx, sy = field_layers(fields[k], ext, origin, transform)
         cov_model, inverse = model_layers(model, params, None if covs is None else covs[k], transform, ext, dem,
                                           None if unmodelled is None else unmodelled[k])
         sigmas[i] = pixel_sigma(codes[i], cov_model, inverse, sx, sy)
@@ -567,8 +573,9 @@ def mosaic(
         The output's CRS (``"EPSG:32634"``, ``3857``, WKT...); default the reference's. The
         scenes' models stay in the reference's CRS: every output pixel is mapped there
         exactly (pyproj, per pixel, in its tile's task). Without ``resolution``, the pixel is
-        the reference's pixel size measured in ``crs`` at the block's centre. Not with
-        ``dense`` (the dense fields live on the reference's grid).
+        the reference's pixel size measured in ``crs`` at the block's centre. With ``dense``,
+        the fields (on the reference's grid) are sampled where each output pixel falls on it
+        (bilinear, :func:`geocoder.mosaic.layers.sample_field`).
     feather : float
         Width of the blend across a seam, in output pixels.
     seams : {"least-cost", "centre"}
@@ -660,8 +667,6 @@ def mosaic(
         raise ValueError(f"dense must be True, False or 'control', got {dense!r}")
     if resolution is not None and not (math.isfinite(resolution) and resolution > 0):
         raise ValueError(f"resolution must be a positive number, got {resolution!r}")
-    if dense and (resolution is not None or crs is not None):
-        raise ValueError("dense refinement needs the reference's grid: give no resolution or crs with dense")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
     if output_tile is None:
         output_tile = tile
@@ -878,10 +883,10 @@ def mosaic(
             origin = tuple(int(round(v)) for v in ~transform * (out_transform.c, out_transform.f))  # output (0, 0) in reference pixels
             to_out = [_shifted(to_ref[k], origin) for k in block]
             boxes = np.array([_footprint_box(to_ref[k], shapes[k], origin) for k in block])
-        else:
-            origin = (0, 0)  # no dense fields (refused above): unused
+        else:  # output pixels reach the dense fields through the map and the reference's transform
+            origin = transform
             to_out = [_through_map(to_ref[k], transform, out_grid) for k in block]
-            boxes = np.array([_footprint_box(f, shapes[k], origin) for f, k in zip(to_out, block)])
+            boxes = np.array([_footprint_box(f, shapes[k], (0, 0)) for f, k in zip(to_out, block)])
         summary.footprints = [footprint_outline(f, shapes[k]) for f, k in zip(to_out, block)]
         _adjustment_figures(summary, problem, result, models, [shapes[k] for k in block],
                             [_to_map(to_ref[k], transform) for k in block], to_out, heights)
@@ -910,7 +915,8 @@ def mosaic(
             **_attrs(summary, block, models, gains),
             "dense_fields": json.dumps([None if f is None else {"group": f["group"], "row0": f["row0"], "col0": f["col0"],
                                                                 "shape": list(f["shape"])} for n, f in enumerate(fields)]),
-            "reference_origin": json.dumps(list(origin)),
+            **({"reference_origin": json.dumps(list(origin))} if not isinstance(origin, Affine) else
+               {"reference_transform": json.dumps(list(origin)[:6])}),
             **({"models_crs": out_grid.ref_crs} if isinstance(out_grid, Reprojected) else {}),
         })
         if cog is not None:
@@ -1186,14 +1192,15 @@ def scene_positions(ds: xr.Dataset, store: str | os.PathLike) -> list[tuple[np.n
     transform = ds.rio.transform()
     if "models_crs" in ds.attrs:  # another CRS than the models': its pixels mapped to theirs
         transform = Reprojected(transform, ds.rio.crs.to_wkt(), ds.attrs["models_crs"])
-    ref = json.loads(ds.attrs.get("reference_origin", "[0, 0]"))
+    ref = (Affine(*json.loads(ds.attrs["reference_transform"])) if "reference_transform" in ds.attrs
+           else tuple(json.loads(ds.attrs.get("reference_origin", "[0, 0]"))))
     window = (0, ds.sizes["y"], 0, ds.sizes["x"])
     heights = np.asarray(ds["height"].values, dtype=np.float64) if "height" in ds else None
     out = []
     for (model, params), f in zip(models, fields):
         if f is not None:
             f = {**f, "store": f"{os.fspath(store)}/{f['group']}"}
-        out.append(_scene_xy(model, params, transform, window, f, tuple(ref), heights))
+        out.append(_scene_xy(model, params, transform, window, f, ref, heights))
     return out
 
 
