@@ -25,7 +25,9 @@ class Status(IntEnum):
         from the source scene's adjusted model, :mod:`geocoder.mosaic.layers`).
     ESTIMATED : int
         6: not matched (no texture or a rejected blunder); the global polynomial plus the
-        mean residual of the matches of its scan line (:mod:`geocoder.quality.lines`).
+        smooth part along the scan lines and the shift of its scan line, both from the
+        line's and all lines' matches (:mod:`geocoder.quality.lines`; in a mosaic, along the
+        scene's rows, :mod:`geocoder.mosaic.scanlines`).
     """
 
     OUTSIDE = 0

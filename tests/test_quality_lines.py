@@ -278,72 +278,65 @@ def test_line_fits_do_not_depend_on_the_tiling(client, tmp_path):
         np.testing.assert_allclose(x, y, atol=1e-5)
 
 
-def test_line_ends_take_the_residual_near_the_end_and_do_not_depend_on_the_tiling(client, tmp_path):
-    """Beyond a line's first or last usable pixel (the template's margin, an untextured end),
-    up to max_hole px: the polynomial plus the mean residual of the usable pixels within
-    ``edge`` columns inside that end (its departure from the line's mean shrunk by the matches'
-    noise, negligible here); farther, nothing (issue 14)."""
+def test_whole_lines_take_their_shift_and_the_smooth_part_and_do_not_depend_on_the_tiling(client, tmp_path):
+    """Every unmatched pixel of a line with matches, however far from them along the line (an
+    untextured stretch, the template's margin): the polynomial plus the smooth part along the
+    lines fitted to all lines' matches plus the line's own shift (issue 14)."""
     from geocoder import Status
+    from geocoder.quality.lines import line_coordinate
 
-    h, w = 16, 700
+    h, w = 48, 700
     cols = np.arange(w)
     rows = np.arange(h)
-    first = 30 + 10 * rows
-    first[3] = 400  # this line's left end is farther than max_hole from column 0
-    last = 660 - 5 * rows
-    trend = 0.002 * (cols[None, :] - 350) + 0.1 * np.sin(rows)[:, None]  # the residual moves along the line
+    u, v = line_coordinate(cols, w)[None, :], line_coordinate(rows, h)[:, None]
+    bend = 0.6 * u**2 - 0.3 * u * v + 0.2 * u  # how the polynomial errs along the lines
+    shift = 0.8 * np.sin(rows / 3.0)[:, None]  # each line's roll
+    truth = bend + shift
+    first = 30 + 10 * (rows % 16)
+    first[3] = 400  # nothing matched in the left 400 px of this line
+    last = 660 - 5 * (rows % 16)
     usable = (cols[None, :] >= first[:, None]) & (cols[None, :] <= last[:, None])
     status = np.where(usable, Status.MATCHED, Status.NO_TEXTURE).astype(np.uint8)
-    dx = np.where(usable, trend, np.nan)
-    dy = np.where(usable, -trend, np.nan)
-    sig = np.full((h, w), 1e-4, np.float32)  # matches far more precise than the line's spread: the end's mean kept whole
-    opts = LineOptions(fit_order=-1)
-    want_dx = np.full((h, w), np.nan)
-    reach = np.zeros((h, w), bool)
-    for r in range(h):
-        left = (cols < first[r]) & (cols >= first[r] - opts.max_hole)
-        right = (cols > last[r]) & (cols <= last[r] + opts.max_hole)
-        want_dx[r, left] = trend[r, first[r] : first[r] + opts.edge].mean()
-        want_dx[r, right] = trend[r, last[r] - opts.edge + 1 : last[r] + 1].mean()
-        reach[r] = left | right
+    dx = np.where(usable, truth, np.nan)
+    dy = np.where(usable, -truth, np.nan)
+    sig = np.full((h, w), 1e-3, np.float32)
+    opts = LineOptions(fit_order=-1, max_hole=0)
     results = []
     for chunk in (64, 128, 700):
         got, _ = _line_field(tmp_path, np.nan_to_num(dx), np.nan_to_num(dy), status, sig, sig, chunk, opts, rows=True)
-        estimated = got["status"] == Status.ESTIMATED
-        assert (estimated == reach).all()
-        np.testing.assert_allclose(got["dx"][reach], want_dx[reach], atol=1e-5)
-        np.testing.assert_allclose(got["dy"][reach], -want_dx[reach], atol=1e-5)
-        assert (got["sigma_x"][reach] > 0).all() and np.isfinite(got["sigma_y"][reach]).all()
-        assert (got["dx"][~usable & ~reach] == 0).all()  # beyond the reach: the (zero) polynomial
+        assert (got["status"][~usable] == Status.ESTIMATED).all()
+        np.testing.assert_allclose(got["dx"][~usable], truth[~usable], atol=1e-4)
+        np.testing.assert_allclose(got["dy"][~usable], -truth[~usable], atol=1e-4)
+        # the sigma: how far the line is from its estimate (nil here) beyond the matches' noise
+        assert (got["sigma_x"][~usable] < 0.01).all() and np.isfinite(got["sigma_y"][~usable]).all()
         results.append(got)
     for other in results[:-1]:
-        for name in ("dx", "dy", "sigma_x", "sigma_y", "status"):
-            np.testing.assert_array_equal(other[name], results[-1][name])
+        for name in ("dx", "dy", "sigma_x", "sigma_y"):
+            np.testing.assert_allclose(other[name], results[-1][name], atol=1e-6)
+        np.testing.assert_array_equal(other["status"], results[-1]["status"])
+    # without the smooth part (the row's mean alone) the far ends would be off by the bend
+    mean_only = np.array([truth[r, usable[r]].mean() for r in range(h)])[:, None] + 0 * truth
+    assert np.sqrt(np.mean((mean_only - truth)[~usable] ** 2)) > 0.1
 
 
-def test_line_ends_of_a_line_that_is_one_shift_take_the_line_mean(client, tmp_path):
-    """Where a line is one shift to its matches' noise, its ends take the line's mean, not the
-    noisier mean near the end (the global polynomial already explains the field)."""
-    from geocoder import Status
+def test_smooth_fit_leaves_the_lines_shifts_to_the_lines():
+    """The smooth part is fitted about each line's mean: a shift per line, however large, does
+    not leak into it, and the adjusted sums' means are the shifts."""
+    from geocoder.quality.lines import TERMS, smooth_fit, smooth_values, term_sums
 
-    h, w = 8, 400
-    cols = np.arange(w)
-    usable = (cols[None, :] >= 40) & (cols[None, :] < 360) & np.ones((h, 1), bool)
-    rng = np.random.default_rng(5)
-    shift = 0.3 * np.arange(h)[:, None]
-    dx = np.where(usable, shift + rng.normal(0, 0.05, (h, w)), 0.0)
-    status = np.where(usable, Status.MATCHED, Status.NO_TEXTURE).astype(np.uint8)
-    sig = np.full((h, w), 0.05, np.float32)
-    got, _ = _line_field(tmp_path, dx, dx, status, sig, sig, 128, LineOptions(fit_order=-1), rows=True)
-    ends = ~usable & (got["status"] == Status.ESTIMATED)
-    assert ends.sum() == h * 80
-    line_mean = np.array([dx[r, usable[r]].mean() for r in range(h)])
-    band_mean = np.array([[dx[r, 40:72].mean(), dx[r, 328:360].mean()] for r in range(h)])
-    off = np.array([[got["dx"][r, 0], got["dx"][r, -1]] for r in range(h)]) - line_mean[:, None]
-    band_off = band_mean - line_mean[:, None]
-    assert np.sqrt(np.mean(off**2)) < 0.3 * np.sqrt(np.mean(band_off**2))
-    for r in range(h):  # one value per end
-        assert np.ptp(got["dx"][r, :40]) == 0 and np.ptp(got["dx"][r, 360:]) == 0
+    h, w = 30, 200
+    rng = np.random.default_rng(2)
+    rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
+    coef = rng.normal(0, 0.3, (2, len(TERMS)))
+    bend = smooth_values(coef, cols, rows, (h, w))
+    shift = rng.normal(0, 5.0, (2, h, 1))
+    usable = rng.random((h, w)) < 0.6
+    rx, ry = bend + shift
+    sums = line_sums(rx, ry, np.zeros((h, w)), np.zeros((h, w)), usable, np.full((h, w), np.nan), np.full((h, w), np.nan))
+    got, adjusted = smooth_fit(sums, term_sums(rx, ry, usable, row0=0, col0=0, shape=(h, w)))
+    np.testing.assert_allclose(got, coef, atol=1e-9)
+    np.testing.assert_allclose(adjusted[1:3] / adjusted[0], shift[:, :, 0], atol=1e-9)
+    np.testing.assert_allclose(adjusted[3:5] / adjusted[0], shift[:, :, 0] ** 2, rtol=1e-7)
 
 
 def test_rows_next_to_the_first_and_last_rows_with_data_take_theirs():

@@ -218,7 +218,7 @@ class MosaicSummary:
             + ", ".join(f"{r:.3f}" for r in self.rms_px),
             *([f"observations left out: {self.rejected.get('robust', 0)} by the robust weights, "
                f"{self.rejected.get('snooping', 0)} by data snooping"] if self.rejected else []),
-            *([f"ground point precision (reference px, median / 95 % / max): "
+            *(["ground point precision (reference px, median / 95 % / max): "
                + ", ".join(f"{k} {v[0]:.3f} / {v[1]:.3f} / {v[2]:.3f}" for k, v in self.point_sigma_px.items())]
               if self.point_sigma_px else []),
             *([f"control points from {self.given_file}: {sum(self.given_points)} used, per scene {self.given_points}, "

@@ -6,15 +6,16 @@ pitch shift a whole scene row at once, and a rotated scene's row crosses many re
 Where nothing was matched, the residual ``field - model`` is modelled as ``P(u, v) + t(row)``:
 
 * ``P``, a low-order polynomial of the scene column ``u`` (and ``u`` times powers of the scene
-  row ``v``, :data:`TERMS`): how the adjusted model errs along the rows (with sparse control the
-  model of a scene far from it can be pixels off, smoothly). It is fitted to the matches of
+  row ``v``, :data:`geocoder.quality.lines.TERMS`): how the adjusted model errs along the rows
+  (with sparse control the model of a scene far from it can be pixels off, smoothly). It is fitted to the matches of
   every row about that row's own mean, so the rows' shifts do not enter it;
 * ``t``, each scene row's own shift: the mean residual of its matches after ``P``; rows without
   matches interpolated across short gaps (:func:`geocoder.quality.lines.line_corrections`).
 
 The matches are gathered by the scene row the adjusted model puts them on
 (:func:`scene_line_sums`, added over the footprint's row bands: a few dozen numbers per scene
-row), solved on one node (:func:`line_table`), and every unmatched pixel of the scene whose row
+row), solved on one node (:func:`line_table`, the same solution as the registration's
+:func:`geocoder.pipeline.lines.row_corrections`), and every unmatched pixel of the scene whose row
 has a shift takes ``model + P + t`` (:func:`line_estimates`), status ``ESTIMATED``, along the
 whole row: roll and pitch move the whole line, and ``P`` is smooth. Where a scene shares only
 the ends of its rows with its refined neighbours (an outer strip's middle scene), this carries
@@ -25,15 +26,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..quality.lines import SUMS
+from ..quality.lines import (
+    NTERM_SUMS,
+    SUMS,
+    TERMS,
+    combine_sums,
+    line_corrections,
+    smooth_fit,
+    smooth_values,
+    terms,
+)
 from ..status import Status
 
 __all__ = ["combine_line_sums", "line_estimates", "line_table", "scene_line_sums"]
-
-
-#: Terms of the smooth along-row correction, as powers ``(a, b)`` of ``u`` (scene column) and ``v``
-#: (scene row), both scaled to [-1, 1]: no term in ``v`` alone, which each row's own shift holds.
-TERMS = ((1, 0), (2, 0), (1, 1), (3, 0), (2, 1), (1, 2))
 
 
 def _scene_lines(pdx: np.ndarray, pdy: np.ndarray, row0: int, col0: int) -> tuple[np.ndarray, np.ndarray]:
@@ -44,20 +49,9 @@ def _scene_lines(pdx: np.ndarray, pdy: np.ndarray, row0: int, col0: int) -> tupl
     return np.rint(ry + pdy).astype(np.int64), rx + pdx
 
 
-def _terms(col: np.ndarray, line: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """The :data:`TERMS` at scene positions, shape ``(len(TERMS), *col.shape)``."""
-    u = (col - (shape[1] - 1) / 2) / max(shape[1] / 2, 1.0)
-    v = (line - (shape[0] - 1) / 2) / max(shape[0] / 2, 1.0)
-    return np.stack([u**a * v**b for a, b in TERMS])
-
-
-def _pairs() -> list[tuple[int, int]]:
-    return [(i, j) for i in range(len(TERMS)) for j in range(i, len(TERMS))]
-
-
-#: Rows of :func:`scene_line_sums`: :data:`~geocoder.quality.lines.SUMS`, then per term its sum,
-#: the sums of the products of terms (upper triangle), and the sums of term x residual (x, then y).
-NSUMS = len(SUMS) + len(TERMS) + len(_pairs()) + 2 * len(TERMS)
+#: Rows of :func:`scene_line_sums`: :data:`~geocoder.quality.lines.SUMS`, then the moments of
+#: the smooth part's terms (:func:`geocoder.quality.lines.term_sums`).
+NSUMS = len(SUMS) + NTERM_SUMS
 
 
 def scene_line_sums(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.ndarray, pdy: np.ndarray, *,
@@ -82,9 +76,9 @@ def scene_line_sums(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.
     ndarray (NSUMS, rows), float64
         Per scene row: :data:`~geocoder.quality.lines.SUMS` of the residuals ``d - p`` (no
         sigmas: the neighbours' errors are not in the matches', see
-        :mod:`geocoder.mosaic.dense_neighbours`; ``first``, ``last`` in scene columns), then the
-        moments of the :data:`TERMS` that :func:`line_table` fits. Blocks add up
-        (:func:`geocoder.quality.lines.combine_sums` on the first ten rows, a sum on the rest).
+        :mod:`geocoder.mosaic.dense_neighbours`; ``first``, ``last`` in scene columns), then
+        the terms' moments as :func:`~geocoder.quality.lines.term_sums` has them, by scene row.
+        Blocks add up (:func:`combine_line_sums`).
     """
     lines = shape[0]
     line, col = _scene_lines(pdx, pdy, row0, col0)
@@ -92,81 +86,47 @@ def scene_line_sums(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.
     line, col = line[use], col[use]
     ex = np.asarray(dx, np.float64)[use] - pdx[use]
     ey = np.asarray(dy, np.float64)[use] - pdy[use]
-    phi = _terms(col, line, shape)
+    phi = terms(col, line.astype(np.float64), shape)
+    nt = len(phi)
+    values = [None, ex, ey, ex * ex, ey * ey, None, None, None, None, None, *phi,
+              *(phi[i] * phi[j] for i in range(nt) for j in range(i, nt)), *(phi * ex), *(phi * ey)]
     out = np.zeros((NSUMS, lines))
     out[0] = np.bincount(line, minlength=lines)
-    for k, v in ((1, ex), (2, ey), (3, ex * ex), (4, ey * ey)):
-        out[k] = np.bincount(line, weights=v, minlength=lines)
+    for k, v in enumerate(values):
+        if v is not None:
+            out[k] = np.bincount(line, weights=v, minlength=lines)
     out[8], out[9] = np.inf, -np.inf
     np.minimum.at(out[8], line, col)
     np.maximum.at(out[9], line, col)
-    k = len(SUMS)
-    for i in range(len(TERMS)):
-        out[k] = np.bincount(line, weights=phi[i], minlength=lines)
-        k += 1
-    for i, j in _pairs():
-        out[k] = np.bincount(line, weights=phi[i] * phi[j], minlength=lines)
-        k += 1
-    for r in (ex, ey):
-        for i in range(len(TERMS)):
-            out[k] = np.bincount(line, weights=phi[i] * r, minlength=lines)
-            k += 1
     return out
 
 
 def combine_line_sums(parts: np.ndarray) -> np.ndarray:
     """:func:`scene_line_sums` of whole scene rows from those of blocks (last axis)."""
-    from ..quality.lines import combine_sums
-
     out = parts.sum(axis=-1)
     out[: len(SUMS)] = combine_sums(parts[: len(SUMS)])
     return out
 
 
 def line_table(sums: np.ndarray, *, min_count: int, max_gap: int, end_rows: int) -> np.ndarray:
-    """The corrections of a scene: a smooth along-row part and a shift per row.
-
-    The residuals of the matches are ``P(u, v) + t(row)``: ``P`` a polynomial of the
-    :data:`TERMS` (how the adjusted model errs along the rows, fitted to every row's matches
-    about that row's mean, so the rows' shifts do not enter it) and ``t`` the row's own shift
-    (its mean residual after ``P``; rows without one interpolated by
-    :func:`geocoder.quality.lines.line_corrections`).
+    """The corrections of a scene: the smooth part along its rows and a shift per row
+    (:func:`geocoder.quality.lines.smooth_fit`, :func:`geocoder.quality.lines.line_corrections`).
 
     Returns
     -------
     ndarray (4 + 2 len(TERMS), rows)
-        ``cx, cy, first, last`` per row (NaN where a row has no shift), then the coefficients
-        of ``P`` in x and in y (repeated along the rows, so the graph carries one array).
+        ``cx, cy, first, last`` per row (NaN where a row has no shift), then the smooth part's
+        coefficients in x and in y (repeated along the rows, so the graph carries one array).
     """
-    from ..quality.lines import line_corrections
-
-    nt = len(TERMS)
-    n = sums[0]
-    k = len(SUMS)
-    s_phi = sums[k : k + nt]
-    s_pp = sums[k + nt : k + nt + len(_pairs())]
-    s_pr = sums[k + nt + len(_pairs()) :].reshape(2, nt, -1)
-    safe = np.maximum(n, 1.0)
-    gram = np.zeros((nt, nt))
-    for m, (i, j) in enumerate(_pairs()):
-        gram[i, j] = gram[j, i] = np.sum(s_pp[m] - s_phi[i] * s_phi[j] / safe)
-    coef = np.zeros((2, nt))
-    scale = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
-    if np.all(np.diag(gram) > 0) and np.linalg.cond(gram / np.outer(scale, scale)) < 1e8:
-        for a, r in enumerate((sums[1], sums[2])):
-            rhs = np.sum(s_pr[a] - s_phi * (r / safe), axis=1)
-            coef[a] = np.linalg.solve(gram, rhs)
-    adjusted = sums[: len(SUMS)].copy()
-    adjusted[1] -= coef[0] @ s_phi
-    adjusted[2] -= coef[1] @ s_phi
+    coef, adjusted = smooth_fit(sums[: len(SUMS)], sums[len(SUMS):])
     rows = line_corrections(adjusted, min_count=min_count, max_gap=max_gap, end_rows=end_rows)
     return np.concatenate([np.stack([rows.cx, rows.cy, rows.first, rows.last]),
-                           np.repeat(coef.reshape(-1, 1), n.size, axis=1)])
+                           np.repeat(coef.reshape(-1, 1), sums.shape[1], axis=1)])
 
 
 def line_estimates(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.ndarray, pdy: np.ndarray,
                    table: np.ndarray, *, row0: int, col0: int, shape: tuple[int, int]) -> np.ndarray:
-    """Unmatched pixels of a block: the model plus the smooth correction and their row's shift.
+    """Unmatched pixels of a block: the model plus the smooth part and their row's shift.
 
     Parameters
     ----------
@@ -190,10 +150,9 @@ def line_estimates(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.n
     inside = (line >= 0) & (line < shape[0]) & (col >= -0.5) & (col <= shape[1] - 0.5)
     at = np.clip(line, 0, shape[0] - 1)
     cx, cy = table[0][at], table[1][at]
-    nt = len(TERMS)
-    coef = table[4:, 0].reshape(2, nt)
+    coef = table[4:, 0].reshape(2, len(TERMS))
     estimate = inside & (status != Status.MATCHED) & (status != Status.FILLED) & np.isfinite(cx)
-    smooth = np.tensordot(coef, _terms(col, line.astype(np.float64), shape), axes=1)
+    smooth = smooth_values(coef, col, line.astype(np.float64), shape)
     out_dx = np.where(estimate, pdx + smooth[0] + np.nan_to_num(cx), dx)
     out_dy = np.where(estimate, pdy + smooth[1] + np.nan_to_num(cy), dy)
     out_status = np.where(estimate, Status.ESTIMATED, status)

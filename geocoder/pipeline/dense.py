@@ -635,7 +635,7 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
 
 
 def _store_block(state: str, window: tuple[int, int, int, int], block: np.ndarray, mapping: PolyMap | None = None,
-                 width: int = 0) -> np.ndarray | None:
+                 shape: tuple[int, int] = (0, 0)) -> np.ndarray | None:
     from .lines import field_window, tile_sums
 
     r0, r1, c0, c1 = window
@@ -644,7 +644,7 @@ def _store_block(state: str, window: tuple[int, int, int, int], block: np.ndarra
         return None
     # the row sums of the field as dense_field returns it: the polynomial where not usable
     dx, dy, px, py, status, _ = field_window(block, mapping, (r0, r1), (c0, c1))
-    return tile_sums(dx, dy, px, py, status, block[3], block[4], col0=c0, width=width)
+    return tile_sums(dx, dy, px, py, status, block[3], block[4], row0=r0, col0=c0, shape=shape)
 
 
 def _stored(stack: da.Array, state: str, grid: TileGrid, job: Job | None,
@@ -659,7 +659,7 @@ def _stored(stack: da.Array, state: str, grid: TileGrid, job: Job | None,
     blocks = stack.to_delayed(optimize_graph=False)
     token = "" if mapping is None else "-" + dask.base.tokenize(mapping.to_dict())
     tasks = {t.key: dask.delayed(_store_block, pure=True)(state, (t.row0, t.row1, t.col0, t.col1), blocks[0, t.iy, t.ix],
-                                                          mapping, grid.width,
+                                                          mapping, (grid.height, grid.width),
                                                           dask_key_name=f"dense-field-store-{t.key}-{stack.name}{token}")
              for t in grid}
     done = run_tiles(job, "dense-field" if mapping is None else "dense-field-sums", tasks, phase="dense field (post-filter)")

@@ -16,6 +16,13 @@ polynomial alone, which cannot know the line's shift.
   farther. Its sigma is the spread of the row's residuals about
   their mean (how far a single shift per line is from the matches), for an interpolated
   row the larger of its two neighbours' plus half the step between their corrections.
+* :func:`term_sums` and :func:`smooth_fit`: what the global polynomial leaves is not one
+  shift per line only; it also errs smoothly along the lines (most at the scene's edges).
+  A polynomial ``P`` of the line coordinate (:data:`TERMS`) is fitted to every line's
+  residuals about that line's mean, by least squares over all lines, and taken off the
+  lines' sums before :func:`line_corrections`: an unmatched pixel then takes the polynomial
+  plus ``P`` plus its line's shift, anywhere along the line
+  (:func:`geocoder.pipeline.lines.line_field`).
 """
 
 from __future__ import annotations
@@ -48,12 +55,9 @@ class LineOptions:
         its correction (the template's half-height: the rows its matches saw); 0: none.
     max_hole : int
         Longest run of unmatched pixels along a line (px) that takes the interpolation of the
-        residuals at its two ends instead of the line's mean (0: never); also how far beyond
-        the first or last usable pixel of a line (its ends: the template's margin, an
-        untextured stretch) an unmatched pixel takes the mean residual near that end.
+        residuals at its two ends instead of the line's estimate (0: never).
     edge : int
-        Usable pixels (at most) averaged at each end of a hole for its residual there; the
-        columns inside a line's end whose usable pixels are averaged for the pixels beyond it.
+        Usable pixels (at most) averaged at each end of a hole for its residual there.
     smooth : int
         Window (px, odd) along the line of the sigma-weighted smoothing of the matches
         (:func:`smooth_matches`; 0: none, the default). Opt-in: with 129 the matched pixels'
@@ -160,9 +164,11 @@ class LineCorrection:
     own : ndarray of bool (H,)
         The row's correction rests on its own matches (False: interpolated, or none).
     first, last : ndarray (H,)
-        Columns between which a row's pixels may be estimated: the span of its usable
-        pixels (of an interpolated row, the overlap of its two neighbours' spans); never
-        past the data along the line.
+        The span of a row's usable pixels (of an interpolated row, the overlap of its two
+        neighbours' spans).
+    smooth : ndarray (2, len(TERMS)) or None
+        The smooth part along the lines (:func:`smooth_fit`) that ``cx, cy`` are the
+        lines' shifts beyond; None: none.
     """
 
     cx: np.ndarray
@@ -172,9 +178,11 @@ class LineCorrection:
     own: np.ndarray
     first: np.ndarray
     last: np.ndarray
+    smooth: np.ndarray | None = None
 
 
-def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8, end_rows: int = 0) -> LineCorrection:
+def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8, end_rows: int = 0,
+                     correlation: int | None = None) -> LineCorrection:
     """A correction per row from the sums of whole rows (:func:`line_sums` added over the row).
 
     Parameters
@@ -188,6 +196,11 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8,
     end_rows : int
         Rows before the first and after the last row with its own correction that take that
         row's correction (0: none), its sigma grown by the step to the next row inside per row.
+    correlation : int, optional
+        Length (px) along a line over which the matches' errors are correlated (a template's
+        length). With it, each row's mean is shrunk toward the mean of all rows by how little
+        the rows' means differ beyond their own uncertainty (:func:`shrink_rows`), so rows
+        that share no shift (a push-broom scene) do not pass their noise on as stripes.
 
     Returns
     -------
@@ -200,10 +213,17 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8,
     cx, cy = sx_ / safe, sy_ / safe
     # The spread of the residuals about the line's mean is the matches' own noise plus how
     # far the line is from one shift; only the latter reaches an estimate, so the matches'
-    # mean variance comes off (floored at the standard error of the mean).
+    # mean variance comes off (plus the uncertainty of the mean: the standard error, or with
+    # ``correlation`` that of the shrunk mean).
     noise_x, noise_y = svx / np.maximum(ns, 1.0), svy / np.maximum(ns, 1.0)
-    vx = np.maximum(sxx / safe - cx * cx - noise_x, 0.0) + (sxx / safe - cx * cx).clip(0.0) / safe
-    vy = np.maximum(syy / safe - cy * cy - noise_y, 0.0) + (syy / safe - cy * cy).clip(0.0) / safe
+    spread_x, spread_y = (sxx / safe - cx * cx).clip(0.0), (syy / safe - cy * cy).clip(0.0)
+    err_x, err_y = spread_x / safe, spread_y / safe
+    if correlation is not None and own.sum() > 2:
+        effective = np.maximum(safe / max(correlation, 1), 1.0)
+        cx, err_x = shrink_rows(cx, spread_x / effective, own)
+        cy, err_y = shrink_rows(cy, spread_y / effective, own)
+    vx = np.maximum(spread_x - noise_x, 0.0) + err_x
+    vy = np.maximum(spread_y - noise_y, 0.0) + err_y
     out = {k: np.full(rows, np.nan) for k in ("cx", "cy", "sx", "sy", "first", "last")}
     if not own.any():
         return LineCorrection(**out, own=own)
@@ -240,6 +260,37 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8,
     return LineCorrection(**out, own=own)
 
 
+def shrink_rows(mean: np.ndarray, var: np.ndarray, own: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows' means shrunk toward their common mean by how much they differ beyond their noise.
+
+    Empirical Bayes: with ``tau2`` the variance of the rows' true shifts (the variance of the
+    means about their precision-weighted mean, less their mean variance ``var``), a row's mean
+    moves ``tau2 / (tau2 + var)`` of the way from the common mean to its own. Rows that share a
+    turbulence keep theirs; rows of a scene without one fall back to the common mean.
+
+    Parameters
+    ----------
+    mean, var : ndarray (H,)
+        Each row's mean residual and that mean's variance.
+    own : ndarray of bool (H,)
+        Rows with a mean of their own (the others are returned as they are).
+
+    Returns
+    -------
+    mean, var : ndarray (H,)
+        The shrunk means and their posterior variance ``k var``.
+    """
+    m, v = mean[own], np.maximum(var[own], 1e-12)
+    w = 1.0 / v
+    centre = float(np.sum(w * m) / np.sum(w))
+    tau2 = max(float(np.mean((m - centre) ** 2) - np.mean(v)), 0.0)
+    keep = tau2 / (tau2 + v)
+    out_mean, out_var = mean.copy(), var.copy()
+    out_mean[own] = centre + keep * (m - centre)
+    out_var[own] = keep * v
+    return out_mean, out_var
+
+
 #: Quantities :func:`fit_sums` returns per row, all added over the blocks of a row band: the
 #: moments ``sum(u^k)`` of the line coordinate of the matches, ``sum(r u^k)`` of their residuals
 #: in x and y, the residuals' squares and the matches' variances.
@@ -250,6 +301,106 @@ def line_coordinate(cols: np.ndarray, width: int) -> np.ndarray:
     """Column -> ``u`` in [-1, 1] across the scene's width (the fits' coordinate along a line)."""
     half = max(0.5 * (width - 1), 1.0)
     return (np.asarray(cols, np.float64) - 0.5 * (width - 1)) / half
+
+
+#: Terms of the smooth part along the lines, as powers ``(a, b)`` of ``u`` (the column,
+#: :func:`line_coordinate`) and ``v`` (the row, likewise across the height): how the global
+#: model errs along the lines. No term in ``v`` alone: each line's own shift holds that.
+TERMS = ((1, 0), (2, 0), (1, 1))
+_PAIRS = tuple((i, j) for i in range(len(TERMS)) for j in range(i, len(TERMS)))
+#: Rows of :func:`term_sums`: per term its sum, the sums of the products of two terms (upper
+#: triangle), the sums of term times residual in x, then in y.
+NTERM_SUMS = 3 * len(TERMS) + len(_PAIRS)
+
+
+def terms(cols: np.ndarray, rows: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The :data:`TERMS` at (broadcast) ``cols`` and ``rows`` of a scene of ``shape``, (len(TERMS), ...)."""
+    u = line_coordinate(cols, shape[1])
+    v = line_coordinate(rows, shape[0])
+    return np.stack([u**a * v**b for a, b in TERMS])
+
+
+def term_sums(rx: np.ndarray, ry: np.ndarray, usable: np.ndarray, *, row0: int, col0: int,
+              shape: tuple[int, int]) -> np.ndarray:
+    """Per row of a block: the moments of the :data:`TERMS` over its usable pixels (:data:`NTERM_SUMS`).
+
+    Parameters
+    ----------
+    rx, ry : ndarray (h, w)
+        Residuals ``d - polynomial``.
+    usable : ndarray of bool (h, w)
+        The pixels :func:`line_sums` counts.
+    row0, col0 : int
+        The block's first pixel in the scene.
+    shape : (int, int)
+        The scene's rows and columns.
+
+    Returns
+    -------
+    ndarray (NTERM_SUMS, h), float64
+    """
+    h, w = usable.shape
+    phi = terms(np.arange(col0, col0 + w)[None, :], np.arange(row0, row0 + h)[:, None], shape)
+    phi = np.where(usable, phi, 0.0)
+    x = np.where(usable, np.asarray(rx, np.float64), 0.0)
+    y = np.where(usable, np.asarray(ry, np.float64), 0.0)
+    return np.concatenate([phi.sum(axis=-1), np.stack([(phi[i] * phi[j]).sum(axis=-1) for i, j in _PAIRS]),
+                           (phi * x).sum(axis=-1), (phi * y).sum(axis=-1)])
+
+
+def smooth_fit(sums: np.ndarray, moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The smooth part along the lines, and the lines' sums with it taken off.
+
+    The residuals of the usable pixels are modelled as ``P(u, v) + t(line)``: ``P`` a
+    combination of the :data:`TERMS`, ``t`` each line's own shift. ``P`` is fitted to every
+    line's residuals about that line's mean (so the lines' shifts do not enter it), by least
+    squares over all lines.
+
+    Parameters
+    ----------
+    sums : ndarray (10, H)
+        :data:`SUMS` of whole lines.
+    moments : ndarray (NTERM_SUMS, H)
+        :func:`term_sums` of whole lines.
+
+    Returns
+    -------
+    coef : ndarray (2, len(TERMS))
+        ``P``'s coefficients in x and y (zero where the terms are not determined).
+    adjusted : ndarray (10, H)
+        ``sums`` of the residuals minus ``P``: their means are the lines' shifts, their
+        spreads how far each line is from ``P`` plus one shift.
+    """
+    nt = len(TERMS)
+    n = sums[0]
+    s_phi = moments[:nt]
+    s_pp = moments[nt : nt + len(_PAIRS)]
+    s_pr = moments[nt + len(_PAIRS) :].reshape(2, nt, -1)
+    safe = np.maximum(n, 1.0)
+    gram = np.zeros((nt, nt))
+    for m, (i, j) in enumerate(_PAIRS):
+        gram[i, j] = gram[j, i] = np.sum(s_pp[m] - s_phi[i] * s_phi[j] / safe)
+    coef = np.zeros((2, nt))
+    diag = np.diag(gram)
+    if np.all(diag > 0):
+        scale = np.sqrt(diag)
+        if np.linalg.cond(gram / np.outer(scale, scale)) < 1e8:
+            for a, r in enumerate((sums[1], sums[2])):
+                coef[a] = np.linalg.solve(gram, np.sum(s_pr[a] - s_phi * (r / safe), axis=1))
+    adjusted = np.array(sums, dtype=np.float64, copy=True)
+    for a in (0, 1):
+        c = coef[a]
+        quad = np.zeros(n.shape)
+        for m, (i, j) in enumerate(_PAIRS):
+            quad += (1.0 if i == j else 2.0) * c[i] * c[j] * s_pp[m]
+        adjusted[1 + a] = sums[1 + a] - c @ s_phi
+        adjusted[3 + a] = np.maximum(sums[3 + a] - 2.0 * (c @ s_pr[a]) + quad, 0.0)
+    return coef, adjusted
+
+
+def smooth_values(coef: np.ndarray, cols: np.ndarray, rows: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``P`` (:func:`smooth_fit`) in x and y at (broadcast) ``cols`` and ``rows``, shape (2, ...)."""
+    return np.tensordot(coef, terms(cols, rows, shape), axes=1)
 
 
 def fit_sums(rx: np.ndarray, ry: np.ndarray, sx: np.ndarray, sy: np.ndarray, matched: np.ndarray, *,
