@@ -1,7 +1,7 @@
 """Dense refinement of the scenes without control, against their refined neighbours.
 
 ``mosaic(dense=True)`` first refines every control scene densely against the reference
-(:func:`geocoder.mosaic.run._refine`). A scene without control has only its adjusted model,
+(:func:`geocoder.mosaic.refine.refine_scene`). A scene without control has only its adjusted model,
 which cannot follow an airborne strip's scan-line turbulence. Here such a scene is matched
 densely against a *neighbour composite*: its already-refined neighbours brought onto the
 reference's pixel grid through their dense fields, radiometrically balanced, each pixel from
@@ -342,7 +342,8 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
     dict
         Block index of every scene refined here -> the neighbours it was last refined against.
     """
-    from .run import _footprint_box, _refine
+    from .refine import refine_scene
+    from .run import _footprint_box
 
     chunks = ref.data.chunks[1:]
     ref_shape = (ref.sizes["y"], ref.sizes["x"])
@@ -361,7 +362,7 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
         seeds = tie_seeds(n, near, ties, to_ref, models, fields, transform, dem)
         if len(seeds) == 0:
             return None
-        return _refine(job, key, store, n, ref, base, readers[n], models[n], seeds, to_ref[n], shapes[n], transform,
+        return refine_scene(job, key, store, n, ref, base, readers[n], models[n], seeds, to_ref[n], shapes[n], transform,
                        opts, dem, tag, sigma_known=False)
 
     counts: dict[tuple[int, int], int] = {}

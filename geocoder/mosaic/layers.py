@@ -171,7 +171,7 @@ def sample_field(located: dict, rx: np.ndarray, ry: np.ndarray) -> tuple[np.ndar
     Parameters
     ----------
     located : dict
-        Where the field is (:func:`geocoder.mosaic.run._refine`).
+        Where the field is (:func:`geocoder.mosaic.refine.refine_scene`).
     rx, ry : ndarray
         Reference pixel coordinates (column, row; pixel centres at integers).
 
@@ -241,7 +241,7 @@ def field_layers(located: dict | None, window: tuple[int, int, int, int], origin
     Parameters
     ----------
     located : dict or None
-        Where the field is (:func:`geocoder.mosaic.run._refine`: ``store``, ``row0``,
+        Where the field is (:func:`geocoder.mosaic.refine.refine_scene`: ``store``, ``row0``,
         ``col0``, ``shape``); None: the scene has no field.
     window : tuple of int
         ``row0, row1, col0, col1`` in output pixels.
