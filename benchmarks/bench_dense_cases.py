@@ -250,7 +250,7 @@ def main() -> None:
               f"{f['calibration'][0]:.2f} / {f['calibration'][1]:.2f} | {cell('matched')} | {cell('filled')} | "
               f"{cell('estimated')} | {f['calibration_estimated'][0]:.2f} / {f['calibration_estimated'][1]:.2f} | {cell('rest')} | {f['all'][1]:.3f}, {f['all'][2]:.2%} |")
     print("\nHole filling (seed 003 sec. 10), default mode: stretches of L matches removed from lines >= 90 % matched,"
-          " filled again by the post-filter (L <= its max_gap) or estimated (ends interpolated up to 128 px, else the line's mean)")
+          " filled again by the post-filter (L <= its max_gap) or estimated (ends interpolated up to 128 px, else the line's estimate: the smooth part along the lines plus the line's shift)")
     print("| case | L px | by | pixels | RMS vs removed matches px | RMSE vs truth px | > 1 px vs truth |")
     print("|---|---:|---|---:|---:|---:|---:|")
     for name, length, by, n, dm, dt, over in holes:
