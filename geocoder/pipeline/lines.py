@@ -127,8 +127,9 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
     In order, as :mod:`geocoder.quality.lines` defines them: every unmatched pixel of a
     corrected row estimated (across a hole of at most ``options.max_hole`` px from the
     residuals at its ends, else along the whole row from the smooth part along the lines plus
-    the row's shift, :func:`_estimates`; status ``ESTIMATED`` with its sigma), every match shrunk toward its line's fit (``fits``, None: not), and with
-    ``options.smooth`` the matches smoothed along their lines. Pixels without a usable match
+    the row's shift, :func:`_estimates`; status ``ESTIMATED`` with its sigma), every match
+    shrunk toward its line's fit (``fits``, None: not), and with ``options.smooth`` the
+    matches smoothed along their lines. Pixels without a usable match
     start from the polynomial ``mapping``.
 
     Each task reads its rows of the field (array ``field`` of the state ``store``, written by
@@ -182,7 +183,7 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     reach = options.max_hole + options.edge + 1 + smooth
     a, b = max(c0 - reach, 0), min(c1 + reach, width)
     f = zarr.open_group(store, mode="r")["field"][:, r0:r1, a:b]
-    dx, dy, px, py, status, good = field_window(f, mapping, (r0, r1), (a, b))
+    dx, dy, px, py, status, _ = field_window(f, mapping, (r0, r1), (a, b))
     sx, sy, rho = f[3], f[4], f[5]
     holes = _hole_block(np.stack([dx, dy, px, py, status.astype(np.float32), sx, sy]).astype(np.float32),
                         max_hole=options.max_hole, edge=options.edge)
