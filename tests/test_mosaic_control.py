@@ -61,11 +61,27 @@ def test_csv_control_alone_places_the_block(files, client, tmp_path):
     assert s["given_file"] == str(csv) and s["given_points"] == [5, 5, 5, 5] and s["check_points"] == [1, 1, 1, 1]
     assert all(r < 0.1 for r in s["given_rmse_px"]) and all(r < 0.1 for r in s["check_rmse_px"])
     assert any(line.startswith(f"control points from {csv}: 20 used") for line in MosaicSummary(**s).lines())
+    # every CSV point by its id: the used ones' residuals are the per-scene RMS's, the withheld ones the checks'
+    by_id = {pid: (k, r, role) for pid, k, r, role in s["given_residuals"]}
+    assert sorted(by_id) == sorted(row[0] for row in truth_rows())
+    for k in range(4):
+        used = [r for pid, (kk, r, role) in by_id.items() if kk == k and role == "control"]
+        check = [r for pid, (kk, r, role) in by_id.items() if kk == k and role == "check"]
+        assert len(used) == 5 and len(check) == 1
+        assert np.sqrt(np.mean(np.square(used))) == pytest.approx(s["given_rmse_px"][k], abs=2e-4)
+        assert check[0] == pytest.approx(s["check_rmse_px"][k], abs=2e-4)
     own, seam = errors(ds)
     rmse = float(np.sqrt(np.nanmean(own**2)))
     print("RMSE against truth (output px)", rmse, "max", np.nanmax(own), "seam", float(np.sqrt(np.mean(seam**2))))
     assert rmse < 0.1, rmse  # the reference-controlled block's bound (test_mosaic)
     assert float(np.sqrt(np.mean(seam**2))) < 0.2
+    # the report lists them
+    from geocoder.mosaic import write_report
+
+    write_report(ds, tmp_path / "report")
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert "| id | scene | residual px | role |" in md
+    assert all(f"| {pid} | {k} |" in md for pid, (k, _, _) in by_id.items()) and md.count("| check |") == 4
 
 
 @pytest.mark.parametrize("header, rows, message", [

@@ -227,6 +227,11 @@ def _markdown(s: MosaicSummary, gains: np.ndarray | None, factor: int, arrow_sca
     lines += ["", "![residuals](residuals.png)", "",
               (f"Vectors: the mean residual of a scene's observations in each of 3 x 3 cells, drawn {arrow_scale:.0f} "
                "times longer."), ""]
+    if s.given_residuals:
+        lines += [f"Control points from {os.path.basename(s.given_file)} (residual: the scene pixel measured against the "
+                  "map position through the adjusted model, scene pixels; check points were withheld from the "
+                  "adjustment):", "", "| id | scene | residual px | role |", "|---|---:|---:|---|",
+                  *(f"| {pid} | {k} | {_fmt(r, 3)} | {role} |" for pid, k, r, role in s.given_residuals), ""]
     if s.rejected:
         lines += [(f"Observations left out: {s.rejected.get('robust', 0)} by the robust re-weighting, "
                    f"{s.rejected.get('snooping', 0)} by data snooping (Baarda, w > 3.29)."), ""]

@@ -158,6 +158,10 @@ class MosaicSummary:
         Per scene, the RMS residual (scene pixels) of those points: their measured pixel
         against their map coordinates through the adjusted model (NaN without points or out
         of the block).
+    given_residuals : list of list
+        Every point of the ``control`` CSV: ``[id, scene, residual px, role]`` (its scene pixel
+        against its map position through the adjusted model; None out of the block; role
+        ``"control"`` or ``"check"``). Empty without a CSV.
     rejected : dict
         Image observations the adjustment left out: ``robust`` (by the robust re-weighting)
         and ``snooping`` (by Baarda's data snooping after it, one per round).
@@ -196,6 +200,7 @@ class MosaicSummary:
     given_file: str = ""
     given_points: list[int] = field(default_factory=list)
     given_rmse_px: list[float] = field(default_factory=list)
+    given_residuals: list[list] = field(default_factory=list)
     rejected: dict = field(default_factory=dict)
     point_sigma_px: dict = field(default_factory=dict)
 
@@ -835,6 +840,7 @@ def mosaic(
         if given is not None:
             summary.given_points, summary.given_rmse_px = _check_residuals(
                 [m for m in used if m.ground_sigma is not None], models, index, len(opened), heights)
+            summary.given_residuals = _given_residuals(given, models, index, checks, heights)
         for n, k in enumerate(block):
             if k in placement.via:  # its footprint from its adjusted model, not the overlap's extrapolation
                 to_ref[k], ref_to[k] = footprint_from_model(*models[n], transform, to_ref[k], shapes[k], heights)
@@ -977,6 +983,27 @@ def _balance(readers: list, ref_reader: WindowReader, transform: Affine, tile: i
         before.append(seam_step(t))
         after.append(seam_step(t, gains[:, b]))
     return gains, [float(np.sqrt(np.nanmean(np.square(before)))), float(np.sqrt(np.nanmean(np.square(after))))]
+
+
+def _given_residuals(given, models: list, index: dict, checks: list, heights=None) -> list[list]:
+    """Every point of the ``control`` CSV: ``[id, scene, residual px, role]``, the residual its
+    scene pixel leaves against its map position through the adjusted model (None for a scene
+    out of the block), role ``"control"`` or ``"check"`` (withheld from the adjustment)."""
+    withheld = {(m.j, float(x), float(y)) for m in checks if m.ground_sigma is not None for x, y in m.b}
+    out = []
+    for i in range(len(given)):
+        k = int(given.scene[i])
+        col, row = (float(v) for v in given.pixel[i])
+        role = "check" if (k, col, row) in withheld else "control"
+        if k not in index:
+            out.append([given.ids[i], k, None, role])
+            continue
+        model, params = models[index[k]]
+        e, n = (np.array([v]) for v in given.world[i])
+        h = np.zeros(1) if heights is None else np.asarray(heights(e, n), dtype=np.float64).reshape(1)
+        xy = model.project(params, np.column_stack([e, n, h]))[0]
+        out.append([given.ids[i], k, round(float(np.hypot(xy[0] - col, xy[1] - row)), 4), role])
+    return out
 
 
 def _withhold(control: list, share: float) -> tuple[list, list]:
