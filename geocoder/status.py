@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from enum import IntEnum
 
+import numpy as np
+
 
 class Status(IntEnum):
     """What the displacement of a base pixel rests on.
@@ -46,3 +48,9 @@ def legend() -> dict[str, int]:
     (:func:`geocoder.conventions.status_attrs`).
     """
     return {s.name.lower(): int(s) for s in Status}
+
+
+def positioned(status: np.ndarray) -> np.ndarray:
+    """Where a dense field gives the position (``MATCHED``, ``FILLED`` or ``ESTIMATED``), elementwise."""
+    status = np.asarray(status)
+    return (status == Status.MATCHED) | (status == Status.FILLED) | (status == Status.ESTIMATED)

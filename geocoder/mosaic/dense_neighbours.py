@@ -35,7 +35,7 @@ from ..geometry import pixel_to_world
 from ..match.tiepoints import TiePoints
 from ..pipeline.job import Job
 from ..scene import IMAGE_VAR, WindowReader
-from ..status import Status
+from ..status import Status, positioned
 from .block import Matches
 from .compose import centre_score
 from .projection import project_window
@@ -231,7 +231,7 @@ def _composite_tile(store: str, window: tuple[int, int, int, int], transform: Af
         x, y = _scene_xy(model, params, transform, window, located, (0, 0), heights)
         s = centre_score(x, y, shape)
         codes = field_layers(located, window, (0, 0))[0]
-        take = (s <= 1.0) & (s < best) & ((codes == Status.MATCHED) | (codes == Status.FILLED) | (codes == Status.ESTIMATED))
+        take = (s <= 1.0) & (s < best) & positioned(codes)
         if not take.any():
             continue
         v = gain[:, 0, None, None] * reader.sample(x, y, method=method) + gain[:, 1, None, None]

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from affine import Affine
 
-from ..status import Status
+from ..status import Status, positioned
 from .outgrid import Reprojected, linear, to_map
 
 __all__ = ["NODE_STEP", "field_layers", "model_layers", "pixel_sigma", "scene_uncertainty"]
@@ -207,7 +207,7 @@ def sample_field(located: dict, rx: np.ndarray, ry: np.ndarray) -> tuple[np.ndar
         return dx, dy, good, status, sx, sy
     g = zarr.open_group(located["store"], mode="r")
     wdx, wdy, wst, wsx, wsy = (np.asarray(g[n][a0:a1, b0:b1]) for n in ("dx", "dy", "status", "sigma_x", "sigma_y"))
-    usable = (wst == Status.MATCHED) | (wst == Status.FILLED) | (wst == Status.ESTIMATED)
+    usable = positioned(wst)
     hh, ww = wst.shape
 
     def at(i, j):

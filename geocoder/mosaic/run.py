@@ -57,7 +57,7 @@ from ..pipeline.job import Job, JobRun, fingerprint, input_identity
 from ..pipeline.register import RegisterOptions, _Timer, ingest_all, open_job
 from ..runtime import dask_client
 from ..scene import WindowReader, open_scene, scene_transform
-from ..status import Status
+from ..status import Status, positioned
 from ..tiles import TileGrid
 from .block import POINT_COLUMNS, Matches, build_problem, connected_scenes, point_table, solve
 from .compose import NO_SOURCE, blend, centre_score
@@ -371,7 +371,7 @@ def _scene_xy(model, params, transform: Affine | Reprojected, window: tuple[int,
         return x, y
     g = zarr.open_group(located["store"], mode="r")
     dx, dy, status = (np.asarray(g[n][a0:a1, b0:b1]) for n in ("dx", "dy", "status"))
-    good = (status == Status.MATCHED) | (status == Status.FILLED) | (status == Status.ESTIMATED)
+    good = positioned(status)
     sl = (slice(a0 - fr0, a1 - fr0), slice(b0 - fc0, b1 - fc0))
     rx = np.arange(b0, b1)[None, :] + located["col0"]  # reference pixel of each field sample
     ry = np.arange(a0, a1)[:, None] + located["row0"]
@@ -998,12 +998,18 @@ def _given_residuals(given, models: list, index: dict, checks: list, heights=Non
         if k not in index:
             out.append([given.ids[i], k, None, role])
             continue
-        model, params = models[index[k]]
-        e, n = (np.array([v]) for v in given.world[i])
-        h = np.zeros(1) if heights is None else np.asarray(heights(e, n), dtype=np.float64).reshape(1)
-        xy = model.project(params, np.column_stack([e, n, h]))[0]
-        out.append([given.ids[i], k, round(float(np.hypot(xy[0] - col, xy[1] - row)), 4), role])
+        residual = _pixel_residuals(models[index[k]], given.world[i : i + 1], given.pixel[i : i + 1], heights)[0]
+        out.append([given.ids[i], k, round(float(residual), 4), role])
     return out
+
+
+def _pixel_residuals(model: tuple, world: np.ndarray, pixel: np.ndarray, heights=None) -> np.ndarray:
+    """Distance (scene px) between measured ``pixel`` (n, 2) and where the adjusted ``model``
+    (``(model, params)``) puts the map points ``world`` (n, 2), at the DEM's heights (0 without)."""
+    e, n = world[:, 0], world[:, 1]
+    h = np.zeros(e.size) if heights is None else np.asarray(heights(e, n), dtype=np.float64)
+    xy = model[0].project(model[1], np.column_stack([e, n, h]))
+    return np.hypot(*(xy - pixel).T)
 
 
 def _withhold(control: list, share: float) -> tuple[list, list]:
@@ -1028,12 +1034,8 @@ def _check_residuals(checks: list, models: list, index: dict, nscenes: int, heig
     for m in checks:
         if m.j not in index or len(m) == 0:
             continue
-        model, params = models[index[m.j]]
-        e, n = m.a[:, 0], m.a[:, 1]
-        h = np.zeros(e.size) if heights is None else np.asarray(heights(e, n), dtype=np.float64)
-        xy = model.project(params, np.column_stack([e, n, h]))
         count[m.j] = len(m)
-        rmse[m.j] = float(np.sqrt(np.mean(np.sum((xy - m.b) ** 2, axis=1))))
+        rmse[m.j] = float(np.sqrt(np.mean(_pixel_residuals(models[index[m.j]], m.a, m.b, heights) ** 2)))
     return count, rmse
 
 

@@ -34,6 +34,7 @@ from ..quality.lines import (
     line_corrections,
     smooth_fit,
     smooth_values,
+    term_values,
     terms,
 )
 from ..status import Status
@@ -86,10 +87,8 @@ def scene_line_sums(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.
     line, col = line[use], col[use]
     ex = np.asarray(dx, np.float64)[use] - pdx[use]
     ey = np.asarray(dy, np.float64)[use] - pdy[use]
-    phi = terms(col, line.astype(np.float64), shape)
-    nt = len(phi)
-    values = [None, ex, ey, ex * ex, ey * ey, None, None, None, None, None, *phi,
-              *(phi[i] * phi[j] for i in range(nt) for j in range(i, nt)), *(phi * ex), *(phi * ey)]
+    values = [None, ex, ey, ex * ex, ey * ey, None, None, None, None, None,
+              *term_values(terms(col, line.astype(np.float64), shape), ex, ey)]
     out = np.zeros((NSUMS, lines))
     out[0] = np.bincount(line, minlength=lines)
     for k, v in enumerate(values):

@@ -344,8 +344,25 @@ def term_sums(rx: np.ndarray, ry: np.ndarray, usable: np.ndarray, *, row0: int, 
     phi = np.where(usable, phi, 0.0)
     x = np.where(usable, np.asarray(rx, np.float64), 0.0)
     y = np.where(usable, np.asarray(ry, np.float64), 0.0)
-    return np.concatenate([phi.sum(axis=-1), np.stack([(phi[i] * phi[j]).sum(axis=-1) for i, j in _PAIRS]),
-                           (phi * x).sum(axis=-1), (phi * y).sum(axis=-1)])
+    return term_values(phi, x, y).sum(axis=-1)
+
+
+def term_values(phi: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per pixel, the quantities whose sums :func:`term_sums` gives, in its order.
+
+    Parameters
+    ----------
+    phi : ndarray (len(TERMS), ...)
+        The :data:`TERMS` at the pixels (:func:`terms`).
+    x, y : ndarray (...)
+        Their residuals.
+
+    Returns
+    -------
+    ndarray (NTERM_SUMS, ...)
+        The terms, the products of two terms (upper triangle), term times ``x``, term times ``y``.
+    """
+    return np.concatenate([phi, np.stack([phi[i] * phi[j] for i, j in _PAIRS]), phi * x, phi * y])
 
 
 def smooth_fit(sums: np.ndarray, moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
