@@ -19,7 +19,7 @@ RMS difference of the filled / estimated values from the removed matches and fro
 
 Usage::
 
-    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,tol0.05]
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,tol0.05,it1,mi8,tries1]
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import shutil
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -221,6 +221,11 @@ def main() -> None:
             modes[mode] = RegisterOptions(matching=DenseOptions(lattice_tol=float(mode[3:])))
         elif re.fullmatch(r"it\d+", mode):  # "itN": N resampling rounds of the every-pixel pass
             modes[mode] = RegisterOptions(matching=DenseOptions(densify_iterations=int(mode[2:])))
+        elif re.fullmatch(r"mi\d+", mode):  # "miN": at most N Gauss-Newton updates per lattice match
+            alsc = DenseOptions().alsc
+            modes[mode] = RegisterOptions(matching=DenseOptions(alsc=replace(alsc, max_iter=int(mode[2:]))))
+        elif re.fullmatch(r"tries\d+", mode):  # "triesN": attempts per lattice pixel
+            modes[mode] = RegisterOptions(matching=DenseOptions(max_tries=int(mode[5:])))
     table, holes = [], []
     with tempfile.TemporaryDirectory(prefix="bench-dense-cases-") as tmp, local_cluster(args.workers) as cluster, \
             Client(cluster) as client:

@@ -311,6 +311,7 @@ _PAIRS = tuple((i, j) for i in range(len(TERMS)) for j in range(i, len(TERMS)))
 #: Rows of :func:`term_sums`: per term its sum, the sums of the products of two terms (upper
 #: triangle), the sums of term times residual in x, then in y.
 NTERM_SUMS = 3 * len(TERMS) + len(_PAIRS)
+_UMAX = max(a for a, _ in TERMS)
 
 
 def terms(cols: np.ndarray, rows: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -340,11 +341,18 @@ def term_sums(rx: np.ndarray, ry: np.ndarray, usable: np.ndarray, *, row0: int, 
     ndarray (NTERM_SUMS, h), float64
     """
     h, w = usable.shape
-    phi = terms(np.arange(col0, col0 + w)[None, :], np.arange(row0, row0 + h)[:, None], shape)
-    phi = np.where(usable, phi, 0.0)
-    x = np.where(usable, np.asarray(rx, np.float64), 0.0)
-    y = np.where(usable, np.asarray(ry, np.float64), 0.0)
-    return term_values(phi, x, y).sum(axis=-1)
+    # a term is u^a v^b with v constant along a row: every row sum is a sum of powers of u,
+    # one matrix product per quantity instead of a plane per term and product
+    upow = line_coordinate(np.arange(col0, col0 + w), shape[1])[:, None] ** np.arange(2 * _UMAX + 1)
+    v = line_coordinate(np.arange(row0, row0 + h), shape[0])
+    ok = np.asarray(usable, np.float64)
+    s_u = ok @ upow
+    s_x = np.where(usable, np.asarray(rx, np.float64), 0.0) @ upow[:, : _UMAX + 1]
+    s_y = np.where(usable, np.asarray(ry, np.float64), 0.0) @ upow[:, : _UMAX + 1]
+    rows = [s_u[:, a] * v**b for a, b in TERMS]
+    rows += [s_u[:, TERMS[i][0] + TERMS[j][0]] * v ** (TERMS[i][1] + TERMS[j][1]) for i, j in _PAIRS]
+    rows += [s[:, a] * v**b for s in (s_x, s_y) for a, b in TERMS]
+    return np.stack(rows)
 
 
 def term_values(phi: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -441,16 +449,13 @@ def fit_sums(rx: np.ndarray, ry: np.ndarray, sx: np.ndarray, sy: np.ndarray, mat
     ndarray (15, H), float64
     """
     ok = matched & np.isfinite(sx) & np.isfinite(sy) & np.isfinite(rx) & np.isfinite(ry)
-    u = line_coordinate(np.arange(ok.shape[-1]) + col0, width)[None, :]
-    w = ok.astype(np.float64)
+    upow = line_coordinate(np.arange(ok.shape[-1]) + col0, width)[:, None] ** np.arange(5)
     x = np.where(ok, np.asarray(rx, np.float64), 0.0)
     y = np.where(ok, np.asarray(ry, np.float64), 0.0)
     vx = np.where(ok, np.asarray(sx, np.float64) ** 2, 0.0)
     vy = np.where(ok, np.asarray(sy, np.float64) ** 2, 0.0)
-    powers = [w, w * u, w * u * u, w * u ** 3, w * u ** 4]
-    return np.stack([p.sum(axis=-1) for p in powers] + [(x * powers[k]).sum(axis=-1) for k in range(3)]
-                    + [(y * powers[k]).sum(axis=-1) for k in range(3)]
-                    + [(x * x).sum(axis=-1), (y * y).sum(axis=-1), vx.sum(axis=-1), vy.sum(axis=-1)])
+    return np.concatenate([(ok.astype(np.float64) @ upow).T, (x @ upow[:, :3]).T, (y @ upow[:, :3]).T,
+                           np.stack([(x * x).sum(axis=-1), (y * y).sum(axis=-1), vx.sum(axis=-1), vy.sum(axis=-1)])])
 
 
 @dataclass(frozen=True)
