@@ -290,8 +290,12 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
 
 @main.command()
 @click.argument("scenes", nargs=-1, required=True)
-@click.option("--reference", required=True,
-              help="Orthoimage: the source of control points, and the mosaic's CRS and pixel unless --crs/--resolution say otherwise.")
+@click.option("--reference", default=None,
+              help="Orthoimage: the source of control points, and the mosaic's CRS and pixel unless --crs/--resolution say "
+                   "otherwise. Without it every scene must be georeferenced (one CRS): placed by its georeference, tied "
+                   "to the others, controlled by --control or else by the georeferences (--georeference-sigma).")
+@click.option("--georeference-sigma", default=5.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+              help="Without --reference and --control: the scenes' georeference error (px), their weight as control.")
 @click.option("--out", required=True, help="Output Zarr store (committed atomically).")
 @click.option("--order", default=2, show_default=True, type=click.IntRange(1, 3), help="Polynomial order of every scene's model.")
 @click.option("--control-scenes", default=None,
@@ -327,9 +331,10 @@ def export(store, variable, cog, blocksize, overviews, resampling, compression, 
 @overwrite_option
 @scheduler_option
 @_friendly
-def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, resampling, balance, cog, dense, report, model,
-           dem, check_points, control_csv, resolution, out_crs, restart, tile, overwrite, scheduler):
-    """Place SCENES on a reference by one block adjustment (control + tie points) and write one seamless mosaic."""
+def mosaic(scenes, reference, georeference_sigma, out, order, control_scenes, feather, seam_mode, resampling, balance, cog,
+           dense, report, model, dem, check_points, control_csv, resolution, out_crs, restart, tile, overwrite, scheduler):
+    """Place SCENES on a reference (or by their georeferences) by one block adjustment (control + tie points) and
+    write one seamless mosaic."""
     from .mosaic import MosaicSummary
     from .mosaic import mosaic as run
 
@@ -348,12 +353,14 @@ def mosaic(scenes, reference, out, order, control_scenes, feather, seam_mode, re
         from .reporting import require_matplotlib
 
         require_matplotlib()
-        check_output(report, inputs=(*scenes, reference, out, *([cog] if cog else [])), overwrite=overwrite, option="--report")
+        check_output(report, inputs=(*scenes, *([reference] if reference else []), out, *([cog] if cog else [])),
+                     overwrite=overwrite, option="--report")
     t0 = time.perf_counter()
     ds = run(list(scenes), reference=reference, out=out, order=order, tile=tile, control_scenes=control,
              feather=feather, seams=seam_mode, resampling=resampling, balance=balance, scheduler=scheduler,
              overwrite=overwrite, cog=cog, dense=dense, model=model, dem=dem, report=report, resume=not restart,
-             check_points=check_points, control=control_csv, resolution=resolution, crs=out_crs)
+             check_points=check_points, control=control_csv, resolution=resolution, crs=out_crs,
+             georeference_sigma=georeference_sigma)
     import json
 
     for line in MosaicSummary(**json.loads(ds.attrs["summary"])).lines():

@@ -204,6 +204,10 @@ def _markdown(s: MosaicSummary, gains: np.ndarray | None, factor: int, arrow_sca
         *(f"| {p['i']}-{p['j']} | {name[p['i']]} | {name[p['j']]} | {p['ties']} | {p.get('problem', '')} |" for p in s.pairs),
         "",
     ]
+    if s.georeference_sigma_px is not None:
+        lines += [f"No reference orthoimage and no control points: every scene placed by its georeference, and the "
+                  f"block controlled by them (a 5 x 5 grid of points per scene, together one position known to "
+                  f"{s.georeference_sigma_px:g} px): the mosaic is where the georeferences put it on average.", ""]
     chained = {k: how for k, how in s.placed.items() if how.startswith("via")}
     if chained:
         lines += ["Not found on the reference, placed through a neighbour (no control points of their own):", "",

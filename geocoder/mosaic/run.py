@@ -48,6 +48,7 @@ from ..cog import to_cog
 from ..conventions import georeference, status_attrs
 from ..errors import GeocoderError, InputError
 from ..geometry import pixel_to_world, world_to_pixel
+from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import fit_polymap
 from ..multiscales import write_overviews
 from ..options import get_option
@@ -64,6 +65,12 @@ from .compose import NO_SOURCE, blend, centre_score
 from .control import DEFAULT_SIGMA_PX, read_control
 from .dense_neighbours import refine_by_neighbours
 from .diagnostics import footprint_outline, pair_mismatch, residual_bins, scene_precision, seam_table
+from .georef import (
+    GEOREFERENCE_SIGMA_PX,
+    georeference_control,
+    georeference_mappings,
+    virtual_reference,
+)
 from .heights import MapDEM, ref_to_scene_prior
 from .layers import field_layers, model_layers, pixel_sigma, sample_field, scene_uncertainty
 from .matching import PairSpec, match_pairs, scene_points
@@ -143,7 +150,7 @@ class MosaicSummary:
         ``recomputed`` and ``recomputed_fraction``; the dense refinement's tiles are not counted.
     placed : dict
         Scene index -> how its position was found: ``"reference"`` (matched on the
-        reference), ``"via scene k"`` (not found there; matched on scene ``k``, its mapping
+        reference), ``"georeference"`` (no reference: the scene's own), ``"via scene k"`` (not found there; matched on scene ``k``, its mapping
         chained through that scene's, :mod:`geocoder.mosaic.placement`) or ``"not placed"``.
     dense_refined : list of str
         Per block scene, how ``dense=True`` refined it: ``"reference"`` (a control scene, against
@@ -170,6 +177,9 @@ class MosaicSummary:
         (reference pixels, the larger of x and y) of the adjusted ground points' map
         positions; empty when the block was too large for the covariances. Every point's are
         in the store's group ``points`` (:func:`geocoder.mosaic.block.point_table`).
+    georeference_sigma_px : float or None
+        Without a reference and a control CSV: the block's control is the scenes'
+        georeferences, observed with this standard deviation (scene pixels); None otherwise.
     """
 
     scenes: list[str]
@@ -203,6 +213,7 @@ class MosaicSummary:
     given_residuals: list[list] = field(default_factory=list)
     rejected: dict = field(default_factory=dict)
     point_sigma_px: dict = field(default_factory=dict)
+    georeference_sigma_px: float | None = None
 
     def lines(self) -> list[str]:
         """The summary as the lines the CLI prints.
@@ -214,10 +225,13 @@ class MosaicSummary:
         kept = len(self.scenes) - len(self.left_out)
         return [
             f"scenes: {len(self.scenes)} ({kept} in the block); control points per scene {self.control_points}",
+            *([f"no reference: the block is controlled by the scenes' georeferences (sigma "
+               f"{self.georeference_sigma_px:g} px), as accurate as they are on average"]
+              if self.georeference_sigma_px is not None else []),
             f"overlapping pairs: {len(self.pairs)}, tie points (overlap) "
             + ", ".join(f"{p['i']}-{p['j']}: {p['ties']}" + (f" ({p['overlap']:.0%})" if "overlap" in p else "") for p in self.pairs),
             *(["placed: " + ", ".join(f"{k} {how}" for k, how in self.placed.items())]
-              if any(how != "reference" for how in self.placed.values()) else []),
+              if any(how not in ("reference", "georeference") for how in self.placed.values()) else []),
             *(f"left out: {self.scenes[int(k)]}: {why}" for k, why in self.left_out.items()),
             "ground points by rays: " + ", ".join(f"{k}: {v}" for k, v in self.rays.items()),
             f"block adjustment: sigma0 {self.sigma0:.3f}, {self.iterations} iterations, RMS residual per scene (px) "
@@ -497,7 +511,7 @@ def _mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affin
 def mosaic(
     scenes: list,
     *,
-    reference,
+    reference=None,
     out: str | os.PathLike | None = None,
     order: int = 2,
     tile: int | None = None,
@@ -521,6 +535,7 @@ def mosaic(
     report: str | os.PathLike | None = None,
     resume: bool = True,
     show_progress=None,
+    georeference_sigma: float = GEOREFERENCE_SIGMA_PX,
 ) -> xr.Dataset:
     """Adjust overlapping scenes as one block on a reference and write one seamless mosaic.
 
@@ -536,9 +551,16 @@ def mosaic(
         ``"via scene k"`` or ``"not placed"``); it has no control points of its own, the block
         adjustment carries it by its tie points. A scene found nowhere is reported in
         ``summary["left_out"]`` and left out.
-    reference : str or PathLike
+    reference : str or PathLike, optional
         Orthoimage: the source of control points, the CRS of the scenes' models, and the
-        output's CRS and pixel unless ``crs`` or ``resolution`` say otherwise.
+        output's CRS and pixel unless ``crs`` or ``resolution`` say otherwise. Without it
+        (:mod:`geocoder.mosaic.georef`) every scene must be georeferenced, all in one CRS:
+        the block is adjusted on a north-up grid of that CRS at the finest scene pixel
+        (covering every footprint; the output's grid unless ``crs`` or ``resolution`` say
+        otherwise), each scene placed by its georeference and tied to the others by tie
+        points, and controlled by the ``control`` CSV or, without one, by its georeference
+        (see ``georeference_sigma``); ``dense`` then needs a reference and is refused, and
+        the radiometric balance ties the scenes to each other only.
     out : str or PathLike, optional
         Zarr store to write (atomically; output safety as in :func:`geocoder.register`).
         Without it the mosaic is computed into memory.
@@ -637,6 +659,10 @@ def mosaic(
         computed again. False starts afresh.
     show_progress : Progress or bool, optional
         Progress receiver, as in :func:`geocoder.register`.
+    georeference_sigma : float
+        Without ``reference`` and ``control``: the standard deviation (scene pixels) of every
+        scene's georeference, which then controls the block as a grid of 5 x 5 points per
+        scene observed with it (the block lands where the georeferences say on average).
 
     Returns
     -------
@@ -673,6 +699,10 @@ def mosaic(
         raise ValueError(f"dense must be True, False or 'control', got {dense!r}")
     if resolution is not None and not (math.isfinite(resolution) and resolution > 0):
         raise ValueError(f"resolution must be a positive number, got {resolution!r}")
+    if reference is None and dense:
+        raise ValueError("dense refinement matches the scenes against a reference orthoimage: give reference")
+    if not (math.isfinite(georeference_sigma) and georeference_sigma > 0):
+        raise ValueError(f"georeference_sigma must be a positive number, got {georeference_sigma!r}")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
     if output_tile is None:
         output_tile = tile
@@ -680,18 +710,21 @@ def mosaic(
         raise ValueError(f"output_tile must be a multiple of 16, got {output_tile}")
     opts.validate()
     extra = [control] if control is not None else []  # the CSV is never written over either
+    if reference is not None:
+        extra.append(reference)
     if out is not None:
-        out = check_output(out, inputs=(*scenes, reference, *extra), overwrite=overwrite)
+        out = check_output(out, inputs=(*scenes, *extra), overwrite=overwrite)
     if cog is not None:  # refused now, not after the job
-        check_output(cog, inputs=(*scenes, reference, *extra, *([out] if out is not None else [])), overwrite=overwrite)
+        check_output(cog, inputs=(*scenes, *extra, *([out] if out is not None else [])), overwrite=overwrite)
     if report is not None:
         from ..reporting import require_matplotlib
 
         require_matplotlib()
-        check_output(report, inputs=(*scenes, reference, *extra, *([out] if out is not None else []), *([cog] if cog else [])),
+        check_output(report, inputs=(*scenes, *extra, *([out] if out is not None else []), *([cog] if cog else [])),
                      overwrite=overwrite, option="report")
-    ref = open_scene(reference, chunks=tile, grid=True)
     opened = [open_scene(s, chunks=tile) for s in scenes]
+    virtual = reference is None  # the frame from the scenes' georeferences (geocoder.mosaic.georef)
+    ref = virtual_reference(opened, tile) if virtual else open_scene(reference, chunks=tile, grid=True)
     crs = _output_crs(ref, reference, resolution, crs)
     given = None
     if control is not None:  # read and checked now, before any work
@@ -714,7 +747,8 @@ def mosaic(
     allowed = set(range(len(scenes)) if control_scenes is None else control_scenes)
     # the inputs' content identity and the version, as register's: a scene, reference or DEM
     # replaced at the same path, or another geocoder, must not reuse the job's finished work
-    key = fingerprint(scenes=[input_identity(s) for s in scenes], reference=input_identity(reference),
+    key = fingerprint(scenes=[input_identity(s) for s in scenes],
+                      reference=["georeferences", georeference_sigma] if virtual else input_identity(reference),
                       dem=None if dem is None else input_identity(dem), options=repr(opts), output_tile=output_tile,
                       control=sorted(allowed), check_points=check_points, feather=feather, seams=seams, resampling=resampling, balance=balance,
                       dense=dense, model=model, version=__version__,
@@ -728,16 +762,16 @@ def mosaic(
         run.connected = c.scheduler.address
         progress.current().message(f"Dask dashboard: {c.dashboard_link}")
         with timer("ingest"):
-            named = {"reference": ref, **{f"scene-{k}": s for k, s in enumerate(opened)},
+            named = {**({} if virtual else {"reference": ref}), **{f"scene-{k}": s for k, s in enumerate(opened)},
                      **({"dem": dem_scene} if dem_scene is not None else {})}
             ingested = ingest_all(job, named, tile, c)
-            ref = ingested["reference"]
+            ref = ref if virtual else ingested["reference"]
             opened = [ingested[f"scene-{k}"] for k in range(len(opened))]
             heights = None
             if dem_scene is not None:
                 dem_scene = ingested["dem"]
                 heights = MapDEM(job.file("dem.zarr"), scene_transform(dem_scene), tile)
-        ref_reader = WindowReader(job.file("reference.zarr"))
+        ref_reader = None if virtual else WindowReader(job.file("reference.zarr"))
         readers = [WindowReader(job.file(f"scene-{k}.zarr")) for k in range(len(opened))]
         shapes = [(s.sizes["y"], s.sizes["x"]) for s in opened]
         crs_wkt = ref.rio.crs.to_wkt() if ref.attrs.get("georeferenced") else None
@@ -749,12 +783,21 @@ def mosaic(
         threads = _threads(c)
         images, image_readers = [ref, *opened], [ref_reader, *readers]
         with timer("interest points"):
-            points = scene_points(job, ["reference", *(f"scene-{k}" for k in range(len(opened)))], images, image_readers,
-                                  opts)
+            first = 1 if virtual else 0  # a virtual reference has no image, no points
+            points = scene_points(job, ["reference", *(f"scene-{k}" for k in range(len(opened)))][first:],
+                                  images[first:], image_readers[first:], opts)
+            points = [InterestPoints.concatenate([])] * first + points
         control, ref_to, to_ref, ref_tp = [], {}, {}, {}
+        if virtual:  # placed by their georeferences; controlled by them unless the CSV controls the block
+            for k, scene in enumerate(opened):
+                to_ref[k], ref_to[k] = georeference_mappings(scene, ref, order)
+                if given is None and k in allowed:
+                    control.append(georeference_control(k, scene, georeference_sigma))
+            summary.georeference_sigma_px = None if given is not None else georeference_sigma
         with timer("control points"):
-            found = match_pairs(job, "control", [PairSpec(f"ref-{k}", 0, k + 1, priors[k]) for k in range(len(opened))],
-                                images, image_readers, points, opts)
+            found = [] if virtual else match_pairs(
+                job, "control", [PairSpec(f"ref-{k}", 0, k + 1, priors[k]) for k in range(len(opened))], images,
+                image_readers, points, opts)
             missed = {}
             for k, result in enumerate(found):
                 if isinstance(result, GeocoderError):
@@ -784,7 +827,7 @@ def mosaic(
             if k in missed and k not in placement.via:
                 summary.left_out[str(k)] = (f"not found on the reference ({missed[k]}), "
                                             f"nor on a placed scene ({placement.why_not(k)})")
-        summary.placed = {str(k): "reference" if k not in missed else
+        summary.placed = {str(k): "georeference" if virtual else "reference" if k not in missed else
                           f"via scene {placement.via[k]}" if k in placement.via else "not placed"
                           for k in range(len(opened))}
         ties = []
@@ -813,17 +856,20 @@ def mosaic(
                 summary.left_out[str(k)] = "tied to no control point (no overlap with a controlled scene)"
         block = [k for k in range(len(opened)) if ok[k]]
         if not block:
-            raise InputError(reference, "no scene could be placed on the reference")
+            raise InputError(reference or scenes[0], "no scene could be placed on the reference")
         index = {k: n for n, k in enumerate(block)}
         used, checks = _withhold(control, check_points)
         with timer("block adjustment"):
-            problem = build_problem(
-                [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
-                [replace(m, j=index[m.j]) for m in used if m.j in index],
-                [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
-                order=order, height=heights,
-                models=None if model == "polynomial" else [(sensors[k], sensors[k].initial_params()) for k in block],
-            )
+            def build():
+                return build_problem(
+                    [shapes[k] for k in block], [_to_map(to_ref[k], transform) for k in block],
+                    [replace(m, j=index[m.j]) for m in used if m.j in index],
+                    [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
+                    order=order, height=heights,
+                    models=None if model == "polynomial" else [(sensors[k], sensors[k].initial_params()) for k in block],
+                )
+
+            problem = build()
             result = job.cached("adjustment", lambda: solve(problem, height=heights))
         summary.sigma0, summary.iterations = float(result.sigma0), int(result.iterations)
         points = point_table(problem, result, abs(transform.a))
@@ -851,7 +897,7 @@ def mosaic(
             with timer("radiometric balance"):
                 gains, summary.seam_step = _balance(
                     [readers[k] for k in block], ref_reader, transform, tile,
-                    [replace(m, j=index[m.j]) for m in control if m.j in index],
+                    [] if virtual else [replace(m, j=index[m.j]) for m in control if m.j in index],
                     [Matches(index[t.i], index[t.j], t.a, t.b, t.sigma) for t in ties if t.i in index and t.j in index],
                     nbands)
         ds, grid, out_transform, out_grid = _output_grid(ref, [to_ref[k] for k in block], [shapes[k] for k in block],
@@ -964,9 +1010,11 @@ def sample_points(reader: WindowReader, x: np.ndarray, y: np.ndarray, tile: int,
     return out
 
 
-def _balance(readers: list, ref_reader: WindowReader, transform: Affine, tile: int, control: list, ties: list, nbands: int):
-    """Gain and offset per scene and band (``(K, B, 2)``) and the seam step before and after."""
-    ref_bands = ref_reader.shape[0]
+def _balance(readers: list, ref_reader: WindowReader | None, transform: Affine, tile: int, control: list, ties: list,
+             nbands: int):
+    """Gain and offset per scene and band (``(K, B, 2)``) and the seam step before and after
+    (without a reference, ``ref_reader`` None and no ``control``: the scenes among themselves)."""
+    ref_bands = nbands if ref_reader is None else ref_reader.shape[0]
     cvals = []
     for m in control:
         rx, ry = world_to_pixel(transform, m.a[:, 0], m.a[:, 1])
