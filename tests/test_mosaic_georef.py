@@ -108,22 +108,37 @@ def test_georeferences_control_the_block(georeferenced, client, tmp_path):
     assert rmse < 0.6 * best, (rmse, best)
 
 
+def test_scene_without_georeference_is_placed_by_its_neighbours(block, georeferenced, client, tmp_path):  # noqa: F811
+    """Scene 3 raw (no georeference): matched against the georeferenced scenes it overlaps, then
+    carried by its tie points; the CSV controls only scenes 0-2, so it has no control of its own."""
+    _, raw = block
+    _, paths = georeferenced
+    csv = tmp_path / "gcp.csv"
+    write_csv(csv, truth_rows(scenes=range(3)))
+    ds = mosaic([*paths[:3], raw[3]], tile=128, client=client, control=csv)
+    s = json.loads(ds.attrs["summary"])
+    assert s["left_out"] == {} and s["placed"]["3"].startswith("via scene") and s["given_points"][3] == 0
+    own, seam = errors(ds)
+    rmse = float(np.sqrt(np.nanmean(own**2)))
+    print("RMSE against truth (output px)", rmse, "max", np.nanmax(own), "seam", float(np.sqrt(np.mean(seam**2))))
+    assert rmse < 0.1, rmse
+    assert float(np.sqrt(np.mean(seam**2))) < 0.2
+
+
 def test_without_reference_refusals(block, georeferenced):  # noqa: F811
     d, raw = block
     _, paths = georeferenced
-    with pytest.raises(InputError, match=r"scene0\.tif.*has no georeference"):
-        mosaic([*paths[1:], raw[0]], tile=128)
     with pytest.raises(ValueError, match="dense refinement .* give reference"):
         mosaic(paths, tile=128, dense=True)
     other = d / "utm34.tif"
     write_geotiff(other, open_scene(raw[1]).values[0], transform=north_up(1), crs="EPSG:32634")
     with pytest.raises(InputError, match=r"utm34\.tif.*another CRS"):
         mosaic([paths[0], other], tile=128)
-    # the command line: --reference is optional, the refusal one line naming the file
+    # the command line: --reference is optional; no georeferenced scene at all is refused in one line
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-m", "geocoder.cli", "mosaic", str(paths[0]), str(raw[1]), "--out",
+    r = subprocess.run([sys.executable, "-m", "geocoder.cli", "mosaic", str(raw[0]), str(raw[1]), "--out",
                         str(d / "never.zarr")], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2 and "scene1.tif" in r.stderr and "has no georeference" in r.stderr, r.stderr
+    assert r.returncode == 2 and "scene0.tif" in r.stderr and "has no georeference" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr and not (d / "never.zarr").exists()

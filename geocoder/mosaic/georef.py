@@ -1,16 +1,16 @@
-"""A mosaic without a reference orthoimage: the block's frame and gauge from the scenes' georeferences.
+"""A mosaic without a reference orthoimage: the block's frame and datum from the scenes' georeferences.
 
-Without ``reference``, every scene must carry a georeference (CRS and affine transform,
-e.g. a GeoTIFF's, all in one CRS). The block is then adjusted in a *virtual reference*: a
-north-up pixel grid in that CRS (the finest scene pixel, bounds = the union of the
-footprints) that has no image, only the frame the rest of the mosaic works in (its pixels
-are what the adjustment, the output grid and the summary call reference pixels). Each
-scene's georeference places it (scene pixel -> virtual reference pixel, exactly), the tie
-points between overlapping scenes tie the block together, and the control comes either
-from the ``control`` CSV or, without one, from the georeferences themselves: a grid of
-points per scene whose map positions are the georeference's, observed with the
-georeference's uncertainty (``sigma`` px). So a block without control lands where its
-georeferences say on average, with its scenes made to agree with one another by the ties.
+Without ``reference``, the scenes that carry a georeference (CRS and north-up transform, e.g.
+a GeoTIFF's, all in one CRS; at least one) set the frame: a *virtual reference*, a north-up
+pixel grid in that CRS (the finest scene pixel, bounds = the union of their footprints) that
+has no image, only the frame the rest of the mosaic works in (its pixels are what the
+adjustment, the output grid and the summary call reference pixels). Each such scene is placed
+by its georeference (scene pixel -> virtual reference pixel, exactly); a scene without one is
+placed by matching it against the placed scenes it overlaps
+(:func:`geocoder.mosaic.placement.place_by_neighbours`); the tie points between overlapping
+scenes tie the block together; and the control comes from the ``control`` CSV or, without
+one, from the georeferences themselves (:func:`georeference_control`). So a block without
+control lands where its georeferences say on average, its scenes made to agree by the ties.
 """
 
 from __future__ import annotations
@@ -38,20 +38,21 @@ IMAGE_SIGMA_PX = 0.05
 VIRTUAL_SOURCE = "(none: the scenes' georeferences)"
 
 
-def _checked(scenes: list[xr.DataArray]) -> tuple[object, list[Affine]]:
-    """The common CRS and every scene's transform; refused naming the first scene without them."""
+def _checked(scenes: list[xr.DataArray]) -> tuple[object, list[Affine | None]]:
+    """The CRS of the georeferenced scenes and every scene's transform (None: not georeferenced);
+    refused, naming a scene, when none is georeferenced or one is in another CRS than the first."""
     crs, transforms = None, []
     for s in scenes:
         t = scene_transform(s)
-        if t is None or s.rio.crs is None:
-            raise InputError(s.attrs.get("source", "scene"), "has no georeference (CRS and transform): without a "
-                             "reference orthoimage every scene needs one (or give --reference)")
-        if crs is None:
+        if t is not None and crs is None:
             crs = s.rio.crs
-        elif s.rio.crs != crs:
-            raise InputError(s.attrs.get("source", "scene"), f"is in another CRS ({s.rio.crs}) than the first scene "
-                             f"({crs}): without a reference orthoimage the scenes must share one")
+        elif t is not None and s.rio.crs != crs:
+            raise InputError(s.attrs.get("source", "scene"), f"is in another CRS ({s.rio.crs}) than the first "
+                             f"georeferenced scene ({crs}): without a reference orthoimage the scenes must share one")
         transforms.append(t)
+    if crs is None:
+        raise InputError(scenes[0].attrs.get("source", "scene"), "has no georeference (CRS and transform), nor has any "
+                         "other scene: without a reference orthoimage at least one scene needs one (or give --reference)")
     return crs, transforms
 
 
@@ -61,7 +62,8 @@ def virtual_reference(scenes: list[xr.DataArray], tile: int) -> xr.DataArray:
     Parameters
     ----------
     scenes : list of xarray.DataArray
-        Opened scenes (:func:`geocoder.scene.open_scene`), every one georeferenced, one CRS.
+        Opened scenes (:func:`geocoder.scene.open_scene`); those georeferenced, in one CRS, set the
+        frame (the others are placed through their neighbours later).
     tile : int
         Chunk size of the (never computed) placeholder array.
 
@@ -75,12 +77,14 @@ def virtual_reference(scenes: list[xr.DataArray], tile: int) -> xr.DataArray:
     Raises
     ------
     InputError
-        A scene without a georeference, or in another CRS than the first.
+        No scene georeferenced, or one in another CRS than the first.
     """
     crs, transforms = _checked(scenes)
-    pixel = min(math.sqrt(abs(t.determinant)) for t in transforms)
+    pixel = min(math.sqrt(abs(t.determinant)) for t in transforms if t is not None)
     corners = []
     for s, t in zip(scenes, transforms):
+        if t is None:
+            continue
         h, w = s.sizes["y"], s.sizes["x"]
         corners.append(np.column_stack(t * (np.array([0.0, w, 0.0, w]), np.array([0.0, 0.0, h, h]))))  # pixel corners
     pts = np.concatenate(corners)

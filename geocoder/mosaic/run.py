@@ -554,13 +554,13 @@ def mosaic(
     reference : str or PathLike, optional
         Orthoimage: the source of control points, the CRS of the scenes' models, and the
         output's CRS and pixel unless ``crs`` or ``resolution`` say otherwise. Without it
-        (:mod:`geocoder.mosaic.georef`) every scene must be georeferenced, all in one CRS:
-        the block is adjusted on a north-up grid of that CRS at the finest scene pixel
-        (covering every footprint; the output's grid unless ``crs`` or ``resolution`` say
-        otherwise), each scene placed by its georeference and tied to the others by tie
-        points, and controlled by the ``control`` CSV or, without one, by its georeference
-        (see ``georeference_sigma``); ``dense`` then needs a reference and is refused, and
-        the radiometric balance ties the scenes to each other only.
+        (:mod:`geocoder.mosaic.georef`) the georeferenced scenes (at least one, all in one
+        CRS) set the frame: the block is adjusted on a north-up grid of that CRS at their
+        finest pixel (the output's grid unless ``crs`` or ``resolution`` say otherwise), each
+        of them placed by its georeference, the others through their neighbours, all tied
+        by tie points, and controlled by the ``control`` CSV or, without one, by the
+        georeferences (see ``georeference_sigma``); ``dense`` then needs a reference and is
+        refused, and the radiometric balance ties the scenes to each other only.
     out : str or PathLike, optional
         Zarr store to write (atomically; output safety as in :func:`geocoder.register`).
         Without it the mosaic is computed into memory.
@@ -788,8 +788,12 @@ def mosaic(
                                   images[first:], image_readers[first:], opts)
             points = [InterestPoints.concatenate([])] * first + points
         control, ref_to, to_ref, ref_tp = [], {}, {}, {}
+        missed: dict[int, GeocoderError] = {}
         if virtual:  # placed by their georeferences; controlled by them unless the CSV controls the block
             for k, scene in enumerate(opened):
+                if not scene.attrs.get("georeferenced"):  # placed by its neighbours, below
+                    missed[k] = InputError(scene.attrs["source"], "has no georeference")
+                    continue
                 to_ref[k], ref_to[k] = georeference_mappings(scene, ref, order)
                 if given is None and k in allowed:
                     control.append(georeference_control(k, scene, georeference_sigma))
@@ -798,7 +802,6 @@ def mosaic(
             found = [] if virtual else match_pairs(
                 job, "control", [PairSpec(f"ref-{k}", 0, k + 1, priors[k]) for k in range(len(opened))], images,
                 image_readers, points, opts)
-            missed = {}
             for k, result in enumerate(found):
                 if isinstance(result, GeocoderError):
                     missed[k] = result
@@ -825,9 +828,9 @@ def mosaic(
                                                 near_priors)
         for k in range(len(opened)):
             if k in missed and k not in placement.via:
-                summary.left_out[str(k)] = (f"not found on the reference ({missed[k]}), "
-                                            f"nor on a placed scene ({placement.why_not(k)})")
-        summary.placed = {str(k): "georeference" if virtual else "reference" if k not in missed else
+                summary.left_out[str(k)] = (f"{'placed by no georeference' if virtual else 'not found on the reference'} "
+                                            f"({missed[k]}), nor on a placed scene ({placement.why_not(k)})")
+        summary.placed = {str(k): ("georeference" if virtual else "reference") if k not in missed else
                           f"via scene {placement.via[k]}" if k in placement.via else "not placed"
                           for k in range(len(opened))}
         ties = []
