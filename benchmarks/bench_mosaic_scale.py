@@ -50,8 +50,7 @@ from distributed.diagnostics.plugin import SchedulerPlugin
 
 import geocoder.mosaic.seams as seams_module
 from geocoder.match.tiepoints import TiePoints
-from geocoder.mosaic import mosaic
-from geocoder.mosaic.run import load_models
+from geocoder.mosaic import load_models, mosaic
 from geocoder.pipeline.job import Job
 from geocoder.quality.accuracy import mosaic_errors
 from geocoder.scene import write_geotiff

@@ -15,9 +15,8 @@ import numpy as np
 import pytest
 from test_mosaic import ORTHO, SIZE
 
-from geocoder.mosaic import mosaic, scene_positions
+from geocoder.mosaic import MosaicSummary, mosaic, scene_positions
 from geocoder.mosaic.dense_neighbours import refinement_rounds
-from geocoder.mosaic.run import MosaicSummary
 from geocoder.quality.accuracy import mosaic_errors
 from geocoder.scene import write_geotiff
 from geocoder.simulate.block import BlockScene, render

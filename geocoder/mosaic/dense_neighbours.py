@@ -38,6 +38,7 @@ from ..scene import IMAGE_VAR, WindowReader
 from ..status import Status, positioned
 from .block import Matches
 from .compose import centre_score
+from .output import footprint_box, scene_xy
 from .projection import project_window
 
 __all__ = ["neighbour_composite", "refine_by_neighbours", "refinement_rounds", "reference_positions", "tie_seeds"]
@@ -106,7 +107,7 @@ def _field_at(located: dict, rx: np.ndarray, ry: np.ndarray) -> tuple[np.ndarray
 def _refined_at(model, params: np.ndarray, located: dict | None, transform: Affine, rx: np.ndarray, ry: np.ndarray,
                 dem=None) -> tuple[np.ndarray, np.ndarray]:
     """Scene position of scattered reference pixels: the dense field where it matched or
-    filled the pixel (as :func:`geocoder.mosaic.run._scene_xy`), the adjusted model elsewhere."""
+    filled the pixel (as :func:`geocoder.mosaic.output.scene_xy`), the adjusted model elsewhere."""
     ex, ny = pixel_to_world(transform, rx, ry)
     hz = np.zeros(ex.shape) if dem is None else np.asarray(dem(ex, ny), dtype=np.float64)
     x, y = project_window(model, params, ex[:, None], ny[:, None], hz[:, None], step=1)
@@ -131,7 +132,7 @@ def reference_positions(xy: np.ndarray, to_ref, model, params: np.ndarray, locat
     model, params
         The scene's adjusted model and parameters (map ``E, N, h`` -> scene pixel).
     located : dict or None
-        The scene's dense field (as :func:`geocoder.mosaic.run._scene_xy` takes it), or None.
+        The scene's dense field (as :func:`geocoder.mosaic.output.scene_xy` takes it), or None.
     transform : affine.Affine
         The reference's transform.
     dem : callable, optional
@@ -217,8 +218,6 @@ def _composite_tile(store: str, window: tuple[int, int, int, int], transform: Af
     that position, balanced. A neighbour's model-only pixels are left out: they carry its
     turbulence, which the scene matched against them would inherit."""
     from .layers import field_layers
-    from .run import _scene_xy
-
     r0, r1, c0, c1 = window
     heights = None
     if dem is not None:
@@ -228,7 +227,7 @@ def _composite_tile(store: str, window: tuple[int, int, int, int], transform: Af
     out = np.full((nb, r1 - r0, c1 - c0), np.nan, dtype=np.float32)
     best = np.full((r1 - r0, c1 - c0), np.inf)
     for (model, params), reader, shape, located, gain in zip(models, readers, shapes, fields, gains):
-        x, y = _scene_xy(model, params, transform, window, located, (0, 0), heights)
+        x, y = scene_xy(model, params, transform, window, located, (0, 0), heights)
         s = centre_score(x, y, shape)
         codes = field_layers(located, window, (0, 0))[0]
         take = (s <= 1.0) & (s < best) & positioned(codes)
@@ -343,8 +342,6 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
         Block index of every scene refined here -> the neighbours it was last refined against.
     """
     from .refine import refine_scene
-    from .run import _footprint_box
-
     chunks = ref.data.chunks[1:]
     ref_shape = (ref.sizes["y"], ref.sizes["x"])
     via: dict[int, list[int]] = {}
@@ -353,7 +350,7 @@ def refine_by_neighbours(job: Job, key: str, store: str, ref, transform: Affine,
         n, near, tag = item
         sub = Job(job.file("dense", f"neighbours-{n}{tag}"), key)
         try:
-            r0, r1, c0, c1 = _footprint_box(to_ref[n], shapes[n], (0, 0), margin=COMPOSITE_MARGIN)
+            r0, r1, c0, c1 = footprint_box(to_ref[n], shapes[n], (0, 0), margin=COMPOSITE_MARGIN)
             base = neighbour_composite(sub, "composite", ref_shape, chunks, (r0, r1, c0, c1), transform,
                                        [models[k] for k in near], [readers[k] for k in near], [shapes[k] for k in near],
                                        [fields[k] for k in near], gains[near], dem)

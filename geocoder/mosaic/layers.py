@@ -2,7 +2,7 @@
 
 For every output pixel the mosaic samples its ``source`` scene at a position from that scene's
 adjusted model, or from its dense field where the field matched or filled the pixel
-(:func:`geocoder.mosaic.run._scene_xy`). The layers say which, and how precise that position is:
+(:func:`geocoder.mosaic.output.scene_xy`). The layers say which, and how precise that position is:
 
 * ``status`` uses :class:`geocoder.status.Status`: ``MATCHED`` and ``FILLED`` where the dense
   field gave the position, ``BLUNDER`` and ``NO_TEXTURE`` where the dense matcher rejected or

@@ -29,7 +29,7 @@ def refine_scene(job: Job, key: str, store: str, n: int, ref, ref_reader, reader
             transform: Affine, opts: RegisterOptions, dem=None, tag: str = "", sigma_known: bool = True) -> dict | None:
     """Dense field of block scene ``n`` against the reference (or ``ref_reader``'s image on its
     grid), written to group ``dense/<n><tag>`` of ``store`` on the reference tiles its footprint
-    touches; its location (see :func:`_scene_xy`)."""
+    touches; its location (see :func:`geocoder.mosaic.output.scene_xy`)."""
     from ..pipeline.dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
     from ..pipeline.resample import polynomial_displacement
     from ..quality.postfilter import PostFilterOptions

@@ -30,7 +30,7 @@ from ..errors import InputError
 from ..outputs import check_output, commit_output, write_marker
 from ..reporting import require_matplotlib
 from .compose import NO_SOURCE
-from .run import MosaicSummary
+from .summary import MosaicSummary
 
 __all__ = ["require_matplotlib", "write_report"]
 
