@@ -21,7 +21,7 @@ from ..scene import scene_transform
 from ..status import Status, positioned
 from ..tiles import TileGrid
 from .compose import NO_SOURCE, blend, centre_score
-from .layers import field_layers, model_layers, pixel_sigma, sample_field
+from .layers import NODE_STEP, field_layers, model_layers, pixel_sigma, sample_field
 from .outgrid import Reprojected, from_map, other_grid, to_map
 from .projection import project_window
 from .seamplan import read_labels
@@ -162,16 +162,21 @@ def mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine
     sigmas = np.full((near.size, 2, e1 - r0, f1 - c0), np.nan, dtype=np.float32)
     for i, k in enumerate(near):
         (model, params), reader, shape = models[k], readers[k], shapes[k]
-        x, y = scene_xy(model, params, transform, ext, fields[k], origin, heights)
+        sub = _scene_window(ext, boxes[k])  # the scene's part of the tile: outside its box it sees nothing
+        if sub[0] == sub[1]:
+            continue
+        sl = (slice(sub[0] - r0, sub[1] - r0), slice(sub[2] - c0, sub[3] - c0))
+        x, y = scene_xy(model, params, transform, sub, fields[k], origin, None if heights is None else heights[sl])
         s = centre_score(x, y, shape)
         if not np.any(s <= 1.0):
             continue
-        scores[i] = np.where(s <= 1.0, s, np.nan)
-        values[i] = balance[k, :, 0, None, None] * reader.sample(x, y, method=method) + balance[k, :, 1, None, None]
-        codes[i], sx, sy = field_layers(fields[k], ext, origin, transform)
-        cov_model, inverse = model_layers(model, params, None if covs is None else covs[k], transform, ext, dem,
+        scores[i][sl] = np.where(s <= 1.0, s, np.nan)
+        values[i][(slice(None), *sl)] = (balance[k, :, 0, None, None] * reader.sample(x, y, method=method)
+                                         + balance[k, :, 1, None, None])
+        codes[i][sl], sx, sy = field_layers(fields[k], sub, origin, transform)
+        cov_model, inverse = model_layers(model, params, None if covs is None else covs[k], transform, sub, dem,
                                           None if unmodelled is None else unmodelled[k])
-        sigmas[i] = pixel_sigma(codes[i], cov_model, inverse, sx, sy)
+        sigmas[i][(slice(None), *sl)] = pixel_sigma(codes[i][sl], cov_model, inverse, sx, sy)
     feather = 2.0 * feather_px / max(min(min(s) for s in shapes), 1)
     mosaic, source, _ = blend(values, scores, feather=feather)
     if near.size:  # blend counts the scenes of this tile; the store names them by block index
@@ -227,6 +232,22 @@ def mosaic_tile(store: str, window: tuple[int, int, int, int], transform: Affine
     if heights is not None:
         g["height"][r0:r1, c0:c1] = heights[: r1 - r0, : c1 - c0].astype(np.float32)
     return {"covered": int((source[: r1 - r0, : c1 - c0] != NO_SOURCE).sum()), "seams": stats}
+
+
+def _scene_window(window: tuple[int, int, int, int], box, step: int = NODE_STEP) -> tuple[int, int, int, int]:
+    """The part of ``window`` (``row0, row1, col0, col1``) within a scene's footprint ``box``, its
+    start a multiple of ``step`` from the window's and its length one more than a multiple of it
+    (or reaching the window's end): the interpolation nodes of :func:`scene_xy` and
+    :func:`~geocoder.mosaic.layers.model_layers` are then those of the whole window, so every
+    pixel gets the same values as there. Empty (zero rows) where the box misses the window."""
+    out = []
+    for lo, hi, b0, b1 in ((window[0], window[1], box[0], box[1]), (window[2], window[3], box[2], box[3])):
+        a, b = max(int(b0), lo), min(int(b1), hi)
+        if a >= b:
+            return (window[0], window[0], window[2], window[2])
+        a = lo + (a - lo) // step * step
+        out += [a, min(a + -(-(b - a - 1) // step) * step + 1, hi)]
+    return tuple(out)
 
 
 def footprint_box(to_ref, shape: tuple[int, int], origin: tuple[int, int], margin: int = 16) -> tuple[int, int, int, int]:
