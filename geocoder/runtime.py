@@ -248,6 +248,10 @@ def current_client() -> Client | None:
         return None
 
 
+#: Single-task items :func:`compute_as_completed` keeps in flight per worker thread.
+IN_FLIGHT_PER_THREAD = 2
+
+
 def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     """Compute ``tasks`` (key -> dask collection); yield ``(key, result)`` as each finishes.
 
@@ -272,7 +276,7 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     def room() -> int:  # asked again as each task finishes: workers may join or leave
         if shared:
             return len(items)
-        return 2 * max(1, sum(client.nthreads().values())) - len(running)
+        return IN_FLIGHT_PER_THREAD * max(1, sum(client.nthreads().values())) - len(running)
 
     n = room()
     first = client.compute([t for _, t in items[:n]])

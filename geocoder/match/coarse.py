@@ -30,6 +30,8 @@ class Hypothesis(StrEnum):
     GEOREFERENCE = "georeference"
     FOURIER_MELLIN = "fourier-mellin"
     TRANSLATION = "translation"
+    #: both images already placed by matching (a mosaic's tie pair): the prior, taken as it is
+    PLACEMENT = "placement"
 
 
 @dataclass(frozen=True)

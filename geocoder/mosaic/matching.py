@@ -30,13 +30,14 @@ import xarray as xr
 from ..errors import GeocoderError, InputError, MatchingError
 from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap
-from ..match.coarse import CoarseAlignment
+from ..match.coarse import CoarseAlignment, Hypothesis
 from ..match.tiepoints import TiePoints
 from ..pipeline.coarse import _align, georeference_prior, overview
 from ..pipeline.correspond import _tile_task, distorted_window, fit_global
 from ..pipeline.detect import interest_points_many
 from ..pipeline.job import Job
 from ..pipeline.register import RegisterOptions, _check_overlap
+from ..runtime import current_client
 from ..scene import WindowReader
 from ..tiles import TileGrid
 
@@ -47,12 +48,16 @@ class PairSpec:
 
     ``prior`` (2x3 affine base pixel -> distorted pixel) starts the coarse alignment in
     place of the georeference, as in :func:`~geocoder.pipeline.coarse.coarse_alignment`.
+    ``placed``: the prior comes from both images' placements by matching (within about a
+    pixel): it is the coarse alignment (no task), and the first correspondence pass is guided
+    by it (every interest point of the base matched where it predicts, as the later passes do).
     """
 
     name: str
     base: int
     dist: int
     prior: np.ndarray | None = None
+    placed: bool = False
 
 
 @dataclass
@@ -93,25 +98,14 @@ def scene_points(job: Job, names: list[str], images: list[xr.DataArray], readers
                                 phase="interest points (all scenes)")
 
 
-def _coarse_task(spec: PairSpec, images: list[xr.DataArray], band: int, dist_band: int, use_georeference: bool,
-                 overviews: dict, max_size: int = 512):
-    """The coarse alignment of one pair as a delayed task (:func:`~geocoder.pipeline.coarse.submit_coarse_alignment`'s graph).
-
-    ``overviews`` holds the overview arrays by ``(image, band, factor)``: pairs that share an
-    image at the same level share one overview in the graph (the reference's: computed once).
-    """
+def _overview_keys(spec: PairSpec, images: list[xr.DataArray], band: int, dist_band: int, max_size: int = 512
+                   ) -> tuple[tuple[int, int, int], tuple[int, int, int], int]:
+    """The overviews one pair's coarse alignment runs on, ``(image, band, factor)`` each, and the
+    factor (as :func:`~geocoder.pipeline.coarse.submit_coarse_alignment` picks it)."""
     base, dist = images[spec.base], images[spec.dist]
     largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
     factor = max(1, math.ceil(largest / max_size))
-    prior = spec.prior
-    if prior is None and use_georeference:
-        prior = georeference_prior(base, dist)
-    parts = []
-    for n, b in ((spec.base, band), (spec.dist, dist_band)):
-        if (n, b, factor) not in overviews:
-            overviews[n, b, factor] = overview(images[n].isel(band=b), factor).data
-        parts.append(overviews[n, b, factor])
-    return dask.delayed(_align, pure=True)(*parts, factor, prior)
+    return (spec.base, band, factor), (spec.dist, dist_band, factor), factor
 
 
 def _subset(points: InterestPoints, mask: np.ndarray) -> InterestPoints:
@@ -168,11 +162,25 @@ def coarse_alignments(job: Job, stage: str, specs: list[PairSpec], images: list[
         :class:`~geocoder.errors.GeocoderError` saying why there is none.
     """
     band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
-    overviews: dict = {}
-    done = job.run_tiles(f"{stage}-coarse", {
-        s.name: _coarse_task(s, images, band, dband, opts.use_georeference, overviews) for s in specs},
-        phase=f"coarse alignment ({stage})")
-    return [done[s.name] for s in specs]
+    todo = {s.name: (s, *_overview_keys(s, images, band, dband)) for s in specs if not s.placed}
+    done = {}
+    if todo:
+        keys = {k for _, kb, kd, _ in todo.values() for k in (kb, kd)}
+        arrays = {k: overview(images[k[0]].isel(band=k[1]), k[2]).data for k in sorted(keys)}
+        client = current_client()
+        if client is not None:
+            # computed once, one chunk each: a graph per task would compute a shared overview (the
+            # reference's) again for every pair (measured: 35 chunk reductions x 100 pairs)
+            arrays = dict(zip(arrays, client.persist([a.rechunk(-1) for a in arrays.values()])))
+        tasks = {}
+        for name, (s, kb, kd, factor) in todo.items():
+            prior = s.prior
+            if prior is None and opts.use_georeference:
+                prior = georeference_prior(images[s.base], images[s.dist])
+            tasks[name] = dask.delayed(_align, pure=True)(arrays[kb], arrays[kd], factor, prior)
+        done = job.run_tiles(f"{stage}-coarse", tasks, phase=f"coarse alignment ({stage})")
+    return [CoarseAlignment(np.asarray(s.prior, dtype=np.float64)[:2], Hypothesis.PLACEMENT, False, False, 1, float("nan"))
+            if s.placed else done[s.name] for s in specs]
 
 
 def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.DataArray], readers: list[WindowReader],
@@ -240,8 +248,13 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
 
     live = [p for p in pairs if p.error is None]
     # pass 1: pairs of interest points (seed 000 sec. 4.4) from the coarse prediction; where
-    # that finds too few but the coarse alignment is a full affine, guided from it instead
-    found = dict(zip(map(id, live), round_("pass-1", live, [p.coarse.mapping for p in live], False)))
+    # that finds too few but the coarse alignment is a full affine, guided from it instead;
+    # guided at once from a placement
+    found: dict[int, TiePoints] = {}
+    for guided, todo in ((False, [p for p in live if not p.spec.placed]), (True, [p for p in live if p.spec.placed])):
+        if todo:
+            found.update(zip(map(id, todo), round_("pass-1-placed" if guided else "pass-1", todo,
+                                                   [p.coarse.mapping for p in todo], guided)))
     retry = [p for p in live if len(found[id(p)]) < opts.min_tiepoints and p.coarse.affine]
     if retry:
         found.update(zip(map(id, retry), round_("pass-1-guided", retry, [p.coarse.mapping for p in retry], True)))

@@ -428,8 +428,11 @@ def mosaic(
             overlaps = {(i, j): overlap_fraction(shapes[i], to_ref[i], ref_to[j], shapes[j])
                         for a, i in enumerate(placed) for j in placed[a + 1:]}
             pairs = [ij for ij, share in overlaps.items() if share >= 0.05]
+            # both found on the reference: their placements predict the pair to a pixel, no coarse alignment
+            matched = {k for k in ref_tp if k not in missed}
             found = match_pairs(job, "ties", [PairSpec(f"pair-{i}-{j}", i + 1, j + 1,
-                                                       affine_between(to_ref[i], ref_to[j], shapes[i])) for i, j in pairs],
+                                                       affine_between(to_ref[i], ref_to[j], shapes[i]),
+                                                       placed=i in matched and j in matched) for i, j in pairs],
                                 images, image_readers, points, opts)
             for (i, j), result in zip(pairs, found):
                 if isinstance(result, GeocoderError):
@@ -480,7 +483,8 @@ def mosaic(
                 [m for m in used if m.ground_sigma is not None], models, index, len(opened), heights)
             summary.given_residuals = given_residuals(given, models, index, checks, heights)
         for n, k in enumerate(block):
-            if k in placement.via:  # its footprint from its adjusted model, not the overlap's extrapolation
+            # its footprint from its adjusted model, not the overlap's extrapolation (or its georeference)
+            if k in placement.via or virtual:
                 to_ref[k], ref_to[k] = footprint_from_model(*models[n], transform, to_ref[k], shapes[k], heights)
         summary.block = list(block)
         nbands = opened[0].sizes["band"]
