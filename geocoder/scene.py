@@ -27,6 +27,7 @@ from .conventions import georeference, pixel_grid
 from .errors import InputError, as_environment_failure
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 from .outputs import check_output, commit_output, product_attrs
+from .tiles import Window
 
 IMAGE_VAR = "image"
 
@@ -384,7 +385,7 @@ class WindowReader:
         """Window ``[:, row0:row1, col0:col1]`` clipped to the array; float32, NaN outside."""
         _, h, w = self.shape
         out = np.full((self.shape[0], row1 - row0, col1 - col0), np.nan, dtype=np.float32)
-        r0, r1, c0, c1 = max(row0, 0), min(row1, h), max(col0, 0), min(col1, w)
+        r0, r1, c0, c1 = Window(row0, row1, col0, col1).clip(h, w)
         if r1 > r0 and c1 > c0:
             part = out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0]
             array = self.array

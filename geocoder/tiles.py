@@ -2,10 +2,54 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Iterator, NamedTuple
 
 import numpy as np
+
+
+class Window(NamedTuple):
+    """A half-open window of pixels, ``row0, row1, col0, col1`` (a tuple: it unpacks as one).
+
+    The one place where windows are grown, clipped and turned into slices, so that the stages
+    do not each write ``max(a - halo, 0), min(b + halo, n)`` by hand.
+    """
+
+    row0: int
+    row1: int
+    col0: int
+    col1: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Rows and columns (negative sizes read as 0)."""
+        return max(self.row1 - self.row0, 0), max(self.col1 - self.col0, 0)
+
+    @property
+    def empty(self) -> bool:
+        """Whether the window holds no pixel."""
+        return self.row1 <= self.row0 or self.col1 <= self.col0
+
+    def grow(self, rows: int, cols: int | None = None) -> Window:
+        """The window grown by ``rows`` above and below and ``cols`` (default ``rows``) left and right."""
+        cols = rows if cols is None else cols
+        return Window(self.row0 - rows, self.row1 + rows, self.col0 - cols, self.col1 + cols)
+
+    def clip(self, height: int, width: int) -> Window:
+        """The part inside ``[0, height) x [0, width)`` (possibly empty)."""
+        return Window(max(self.row0, 0), min(self.row1, height), max(self.col0, 0), min(self.col1, width))
+
+    def slices(self, origin: tuple[int, int] = (0, 0)) -> tuple[slice, slice]:
+        """Row and column slices of the window in an array whose first pixel is ``origin`` (row, col)."""
+        return slice(self.row0 - origin[0], self.row1 - origin[0]), slice(self.col0 - origin[1], self.col1 - origin[1])
+
+    @classmethod
+    def around(cls, rows: np.ndarray, cols: np.ndarray, margin: float = 0.0) -> Window:
+        """The window of whole pixels that holds every ``(row, col)`` point, grown by ``margin``
+        (e.g. a tile's outline mapped through a prediction into another image)."""
+        return cls(int(math.floor(float(np.min(rows)) - margin)), int(math.ceil(float(np.max(rows)) + margin)) + 1,
+                   int(math.floor(float(np.min(cols)) - margin)), int(math.ceil(float(np.max(cols)) + margin)) + 1)
 
 
 @dataclass(frozen=True)
@@ -23,9 +67,9 @@ class Tile:
     def key(self) -> str:
         return f"{self.iy}-{self.ix}"
 
-    def window(self, halo: int = 0) -> tuple[int, int, int, int]:
+    def window(self, halo: int = 0) -> Window:
         """Core window grown by ``halo`` on every side (not clipped)."""
-        return self.row0 - halo, self.row1 + halo, self.col0 - halo, self.col1 + halo
+        return Window(self.row0, self.row1, self.col0, self.col1).grow(halo)
 
     def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Mask of points whose nearest pixel lies in the core."""

@@ -127,9 +127,8 @@ def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_rea
         inside = tile.contains(bpts.x, bpts.y)
         if not inside.any():
             continue
-        dwin = distorted_window(tile, predict, margin)
-        dwin = (max(dwin[0], 0), min(dwin[1], dshape[0]), max(dwin[2], 0), min(dwin[3], dshape[1]))
-        if dwin[0] >= dwin[1] or dwin[2] >= dwin[3]:
+        dwin = distorted_window(tile, predict, margin).clip(*dshape)
+        if dwin.empty:
             continue
         dsel = (dpts.y >= dwin[0]) & (dpts.y < dwin[1]) & (dpts.x >= dwin[2]) & (dpts.x < dwin[3])
         tasks[f"{pair.spec.name}.{tile.key}-{token[:12]}"] = dask.delayed(_tile_task, pure=True)(

@@ -19,7 +19,7 @@ from ..kernels.polynomial import PolyMap, fit_polymap
 from ..match.correspondence import CorrespondenceOptions, TileMatchStats, correspond, correspond_guided
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
-from ..tiles import Tile, TileGrid
+from ..tiles import Tile, TileGrid, Window
 from .job import Job, run_tiles
 
 
@@ -27,18 +27,13 @@ def _subset(points: InterestPoints, mask: np.ndarray) -> InterestPoints:
     return InterestPoints(points.x[mask], points.y[mask], points.w[mask], points.q[mask])
 
 
-def distorted_window(tile: Tile, predict: PolyMap, margin: float) -> tuple[int, int, int, int]:
+def distorted_window(tile: Tile, predict: PolyMap, margin: float) -> Window:
     """Window of the distorted image (row0, row1, col0, col1) a base tile maps into."""
     n = 9
     xs = np.r_[np.linspace(tile.col0, tile.col1 - 1, n), np.full(n, tile.col1 - 1), np.linspace(tile.col0, tile.col1 - 1, n), np.full(n, tile.col0)]
     ys = np.r_[np.full(n, tile.row0), np.linspace(tile.row0, tile.row1 - 1, n), np.full(n, tile.row1 - 1), np.linspace(tile.row0, tile.row1 - 1, n)]
     px, py = predict(xs, ys)
-    return (
-        int(np.floor(py.min() - margin)),
-        int(np.ceil(py.max() + margin)) + 1,
-        int(np.floor(px.min() - margin)),
-        int(np.ceil(px.max() + margin)) + 1,
-    )
+    return Window.around(py, px, margin)
 
 
 def _tile_task(tile, base_reader, dist_reader, band, dist_band, bpts, dpts, predict, dwin, opts, guided):
@@ -86,9 +81,8 @@ def match_tiles(
         if not inside.any():
             continue
         margin = opts.d_max + opts.margin * 2 + 2
-        dwin = distorted_window(tile, predict, margin)
-        dwin = (max(dwin[0], 0), min(dwin[1], dshape[0]), max(dwin[2], 0), min(dwin[3], dshape[1]))
-        if dwin[0] >= dwin[1] or dwin[2] >= dwin[3]:
+        dwin = distorted_window(tile, predict, margin).clip(*dshape)
+        if dwin.empty:
             continue
         dsel = (dist_points.y >= dwin[0]) & (dist_points.y < dwin[1]) & (dist_points.x >= dwin[2]) & (dist_points.x < dwin[3])
         tasks[tile.key] = dask.delayed(_tile_task, pure=True)(

@@ -49,7 +49,7 @@ from ..match.fill import fill_window
 from ..match.grow import NFIELDS, SEED_COL, SEED_ROW, SEED_WIDTH, SEED_X, SEED_Y, UNVISITED, grow_window, seed_rows
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
-from ..tiles import Tile, TileGrid
+from ..tiles import Tile, TileGrid, Window
 from .correspond import distorted_window
 from .job import Job, run_tiles
 
@@ -280,8 +280,7 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     if not useful.any():
         return 0, np.empty((0, SEED_WIDTH)), False
     # growth region (global), and the base window around it with the template margin
-    rr0, rr1, rc0, rc1 = tile.window(opts.halo)
-    rr0, rr1, rc0, rc1 = max(rr0, 0), min(rr1, h), max(rc0, 0), min(rc1, w)
+    rr0, rr1, rc0, rc1 = tile.window(opts.halo).clip(h, w)
     pad = max(opts.alsc.radius, opts.alsc.ry) + 2
     wr0, wc0 = rr0 - pad, rc0 - pad
     base = base_reader.read(wr0, rr1 + pad, wc0, rc1 + pad)[band]
@@ -406,7 +405,7 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
     """
     h, w = shape
     k = opts.col_step
-    sc0, sc1 = max(tile.col0 - k, 0), min(tile.col1 + k, w)
+    _, _, sc0, sc1 = tile.window().grow(0, k).clip(h, w)
     f, scode = _read_state(state, slots, grid, tile.row0, tile.row1, sc0, sc1, fields=tuple(range(NFIELDS)))
     cols = np.arange(sc0, sc1)
     lattice = (cols % k == 0)[None, :]
@@ -467,10 +466,9 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     # every round reaches one template half-size further (two with the template's gradients), plus
     # a pixel for the template's central differences
     reach_rounds = n * (2 if opts.densify_gradients == "template" else 1)
-    br0, br1 = max(tile.row0 - reach_rounds * ry - 1, 0), min(tile.row1 + reach_rounds * ry + 1, h)
-    bc0, bc1 = max(tile.col0 - reach_rounds * rx - 1, 0), min(tile.col1 + reach_rounds * rx + 1, w)
-    reach = max(opts.densify_gap, opts.densify_extend)
-    sc0, sc1 = max(bc0 - reach, 0), min(bc1 + reach, w)
+    bwin = tile.window().grow(reach_rounds * ry + 1, reach_rounds * rx + 1).clip(h, w)
+    br0, br1, bc0, bc1 = bwin
+    _, _, sc0, sc1 = bwin.grow(0, max(opts.densify_gap, opts.densify_extend)).clip(h, w)
     f, scode = _read_state(state, slots, grid, br0, br1, sc0, sc1, fields=_START_FIELDS, lattice=lattice)
     cols = np.arange(sc0, sc1)
     matched = (scode == 0) & (cols % k == 0)[None, :]
@@ -578,7 +576,7 @@ def _dense_block(block_info=None, *, state: str, slots: np.ndarray, grid: TileGr
 
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
     pad = halo(postfilter_options)  # the post-filter works along scan lines only
-    w0, w1 = max(c0 - pad, 0), min(c1 + pad, grid.width)
+    _, _, w0, w1 = Window(r0, r1, c0, c1).grow(0, pad).clip(grid.height, grid.width)
     f, code = _read_state(state, slots, grid, r0, r1, w0, w1)
     matched = code == 0
     status = np.where(matched, Status.MATCHED, Status.NO_TEXTURE).astype(np.uint8)

@@ -38,6 +38,7 @@ from ..quality.lines import (
     term_sums,
 )
 from ..status import Status
+from ..tiles import Window
 
 
 def tile_sums(dx, dy, px, py, status, sigma_x, sigma_y, *, row0: int, col0: int, shape: tuple[int, int]) -> np.ndarray:
@@ -181,7 +182,7 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
     smooth = options.smooth // 2 + 1 if options.smooth else 0
     reach = options.max_hole + options.edge + 1 + smooth
-    a, b = max(c0 - reach, 0), min(c1 + reach, width)
+    _, _, a, b = Window(r0, r1, c0, c1).grow(0, reach).clip(shape[0], width)
     f = zarr.open_group(store, mode="r")["field"][:, r0:r1, a:b]
     dx, dy, px, py, status, _ = field_window(f, mapping, (r0, r1), (a, b))
     sx, sy, rho = f[3], f[4], f[5]
