@@ -130,6 +130,8 @@ def test_without_reference_refusals(block, georeferenced):  # noqa: F811
     _, paths = georeferenced
     with pytest.raises(ValueError, match="dense refinement .* give reference"):
         mosaic(paths, tile=128, dense=True)
+    with pytest.raises(ValueError, match="check points .* give control or reference"):
+        mosaic(paths, tile=128, check_points=0.2)
     other = d / "utm34.tif"
     write_geotiff(other, open_scene(raw[1]).values[0], transform=north_up(1), crs="EPSG:32634")
     with pytest.raises(InputError, match=r"utm34\.tif.*another CRS"):

@@ -290,6 +290,9 @@ def mosaic(
         raise ValueError(f"resolution must be a positive number, got {resolution!r}")
     if reference is None and dense:
         raise ValueError("dense refinement matches the scenes against a reference orthoimage: give reference")
+    if reference is None and control is None and check_points:
+        raise ValueError("check points are withheld control points, and without reference or control there are none "
+                         "(the georeferences are no accuracy to check against): give control or reference")
     if not (math.isfinite(georeference_sigma) and georeference_sigma > 0):
         raise ValueError(f"georeference_sigma must be a positive number, got {georeference_sigma!r}")
     opts = RegisterOptions(tile=tile, order=order, dense=False)
