@@ -248,8 +248,9 @@ def current_client() -> Client | None:
         return None
 
 
-#: Single-task items :func:`compute_as_completed` keeps in flight per worker thread.
-IN_FLIGHT_PER_THREAD = 2
+#: Single-task items :func:`compute_as_completed` keeps in flight per worker thread (a bound on the
+#: results and inputs waiting on a worker, and enough queued work to hide the round trips).
+IN_FLIGHT_PER_THREAD = 8
 
 
 def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
@@ -257,10 +258,12 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
 
     On a distributed client results arrive in completion order. Tasks that share inputs
     run as one graph (common inputs computed once). Tasks that are each a single task of
-    their own (inputs embedded, data read by the task) are kept two per worker thread (of
-    the moment) in flight, the next submitted as each finishes: a finished result waits on
-    its worker, with its task's inputs, until the client has fetched it, so submitting all
-    at once let a busy client leave a backlog that grew with the number of tiles. Without a client the tasks are computed together by the current
+    their own (inputs embedded, data read by the task) are kept :data:`IN_FLIGHT_PER_THREAD`
+    per worker thread (of the moment) in flight, the next submitted as each finishes: a
+    finished result waits on its worker, with its task's inputs, until the client has fetched
+    it, so submitting all at once let a busy client leave a backlog that grew with the number
+    of tiles; too few in flight leave a worker idle for a round trip after each short task
+    (a 100-scene mosaic's ~2,000 correspondence tasks of ~15 ms: 41.3 s with 2, 35.9 s with 8). Without a client the tasks are computed together by the current
     Dask scheduler and yielded in key order.
     """
     if not tasks:

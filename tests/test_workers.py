@@ -13,7 +13,7 @@ import yaml
 from distributed import Client, LocalCluster
 
 from geocoder import register
-from geocoder.runtime import WORKER_CONFIG, WORKER_ENV, compute_as_completed, local_cluster
+from geocoder.runtime import IN_FLIGHT_PER_THREAD, WORKER_CONFIG, WORKER_ENV, compute_as_completed, local_cluster
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import make_pair
@@ -117,10 +117,10 @@ def _compute_counting(client: Client, tasks: dict, on_yield=None) -> tuple[dict,
 
 def test_tile_tasks_of_their_own_run_a_window_at_a_time(client):
     """A finished task's result and inputs stay on its worker until the client fetches
-    them, so independent tile tasks are submitted two per worker thread, not all at once."""
-    results, in_flight = _compute_counting(client, _squares(40))
-    assert results == {f"t{i}": i * i for i in range(40)}
-    assert max(in_flight) <= 2 * sum(client.nthreads().values())
+    them, so independent tile tasks are submitted a few per worker thread, not all at once."""
+    results, in_flight = _compute_counting(client, _squares(80))
+    assert results == {f"t{i}": i * i for i in range(80)}
+    assert max(in_flight) <= IN_FLIGHT_PER_THREAD * sum(client.nthreads().values()) < 80
 
 
 def test_tile_tasks_sharing_inputs_run_as_one_graph(client):
@@ -138,7 +138,7 @@ def test_the_window_follows_workers_that_join_during_a_stage():
                 cluster.scale(2)
                 c.wait_for_workers(2, timeout=120)
 
-        results, in_flight = _compute_counting(c, _squares(12), on_yield=grow)
-    assert results == {f"t{i}": i * i for i in range(12)}
-    assert in_flight[0] <= 2, "two per thread of the one worker"
-    assert max(in_flight) > 2, "the second worker's thread gets tasks too"
+        results, in_flight = _compute_counting(c, _squares(4 * IN_FLIGHT_PER_THREAD), on_yield=grow)
+    assert results == {f"t{i}": i * i for i in range(4 * IN_FLIGHT_PER_THREAD)}
+    assert in_flight[0] <= IN_FLIGHT_PER_THREAD, "a window per thread of the one worker"
+    assert max(in_flight) > IN_FLIGHT_PER_THREAD, "the second worker's thread gets tasks too"
