@@ -115,7 +115,7 @@ def _compute_counting(client: Client, tasks: dict, on_yield=None) -> tuple[dict,
     return results, in_flight
 
 
-def test_tile_tasks_of_their_own_run_a_window_at_a_time(client):
+def test_tile_tasks_of_their_own_run_a_window_per_thread(client):
     """A finished task's result and inputs stay on its worker until the client fetches
     them, so independent tile tasks are submitted a few per worker thread, not all at once."""
     results, in_flight = _compute_counting(client, _squares(80))

@@ -20,7 +20,6 @@ result is kept by the job, so a killed run resumes at the round it was in.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import dask
@@ -32,7 +31,7 @@ from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap
 from ..match.coarse import CoarseAlignment, Hypothesis
 from ..match.tiepoints import TiePoints
-from ..pipeline.coarse import _align, georeference_prior, overview
+from ..pipeline.coarse import _align, georeference_prior, overview, overview_factor
 from ..pipeline.correspond import _tile_task, distorted_window, fit_global
 from ..pipeline.detect import interest_points_many
 from ..pipeline.job import Job
@@ -102,9 +101,7 @@ def _overview_keys(spec: PairSpec, images: list[xr.DataArray], band: int, dist_b
                    ) -> tuple[tuple[int, int, int], tuple[int, int, int], int]:
     """The overviews one pair's coarse alignment runs on, ``(image, band, factor)`` each, and the
     factor (as :func:`~geocoder.pipeline.coarse.submit_coarse_alignment` picks it)."""
-    base, dist = images[spec.base], images[spec.dist]
-    largest = max(base.sizes["y"], base.sizes["x"], dist.sizes["y"], dist.sizes["x"])
-    factor = max(1, math.ceil(largest / max_size))
+    factor = overview_factor(images[spec.base], images[spec.dist], max_size)
     return (spec.base, band, factor), (spec.dist, dist_band, factor), factor
 
 
