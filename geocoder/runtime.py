@@ -18,19 +18,21 @@ log = logging.getLogger(__name__)
 
 #: Environment of every worker process: one thread per numeric library (parallelism comes from
 #: tasks), a bounded GDAL block cache (by default 5 % of the machine's memory, which fills
-#: with every tile read, so a worker's memory would grow with the scene), and glibc's mmap
-#: threshold. Dask's nanny sets ``MALLOC_TRIM_THRESHOLD_`` (freed memory goes back to the
-#: system early), which also freezes glibc's mmap threshold at 128 KiB: every larger temporary
-#: (a 512² float64 tile is 2 MiB) is then a fresh mapping, zero-filled page by page on first
-#: touch, and the kernels ran twice as slow as in a plain process (the coarse alignment task:
-#: 1.95 s against 0.95 s). Arrays up to 32 MiB (glibc's own dynamic limit) now come from the
-#: heap and are reused; the trim threshold still hands the heap's free top back. glibc reads
-#: both when the process starts, so they must reach it through the environment it starts with
-#: (the nanny's ``pre-spawn-environ``, see :data:`WORKER_CONFIG`).
+#: with every tile read, so a worker's memory would grow with the scene), and glibc's heap.
+#: Dask's nanny sets ``MALLOC_TRIM_THRESHOLD_`` to 64 KiB (freed memory goes back to the system
+#: at once), which also freezes glibc's mmap threshold at 128 KiB: every larger temporary (a
+#: 512² float64 tile is 2 MiB) was then a fresh mapping, and every task's arrays were mapped
+#: and zero-filled page by page again on first touch, which costs ~10 us per 4 KiB page in
+#: this virtual machine (kernels ran up to twice as slow as in a plain process). Arrays up to
+#: 32 MiB (glibc's own dynamic limit) come from the heap, and up to 256 MiB of freed heap stays
+#: with the process for the next task: a worker's memory is still bounded by its tasks (not the
+#: scene), at ~0.2 GiB more; the 2048² dense job (tile 1024) ran 7.3-7.4 -> 6.5-6.8 s, peak
+#: worker memory 0.74 -> 0.90-1.02 GiB (two interleaved runs each, issue 12's notes). glibc reads both when the process starts, so they must reach it through the
+#: environment it starts with (the nanny's ``pre-spawn-environ``, see :data:`WORKER_CONFIG`).
 #: This is the one definition: the preload (``workers/geocoder_preload.py``) imports it, and the
 #: ``ENV`` of ``workers/Dockerfile`` must repeat it (tests/test_worker_env.py compares them).
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1",
-              "GDAL_CACHEMAX": "16", "MALLOC_MMAP_THRESHOLD_": "33554432"}
+              "GDAL_CACHEMAX": "16", "MALLOC_MMAP_THRESHOLD_": "33554432", "MALLOC_TRIM_THRESHOLD_": "268435456"}
 
 #: Dask configuration of every worker (``workers/dask.yaml`` must hold it too; tests/test_worker_env.py
 #: compares them). The statistical
@@ -39,7 +41,8 @@ WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 #: peak 436 -> 444 MiB with it, 428 -> 432 without). Turn it back on to tune
 #: (``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=True``).
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False,
-                 "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": WORKER_ENV["MALLOC_MMAP_THRESHOLD_"]}
+                 **{f"distributed.nanny.pre-spawn-environ.{k}": WORKER_ENV[k]
+                    for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")}}
 
 
 def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "auto") -> LocalCluster:
