@@ -60,7 +60,7 @@ def build(store: Path, mapping: PolyMap = MAPPING, slots: np.ndarray | None = No
     dx, dy = polynomial_displacement(mapping, GRID.chunks)
     registered = resample(make_reader(store / "distorted.zarr"), dx, dy, method="bilinear")
     slots = np.zeros((len(GRID.rows), len(GRID.cols)), np.int8) if slots is None else slots
-    result = DenseResult(str(store / "state.zarr"), 1, True, [0], slots)
+    result = DenseResult(str(store / "state.zarr"), 1, True, [0], slots, GRID)
     field = dense_field(result, (dx, dy), options)
     return {"dx": dx, "dy": dy, "registered": registered, "status": model_status(registered), **field}
 

@@ -147,13 +147,14 @@ class DenseOptions:
 
 @dataclass(frozen=True)
 class DenseResult:
-    """Where the state is, how many rounds ran, and the matches made per round."""
+    """Where the state is, how many rounds ran, the matches made per round, and the job's tiles."""
 
     store: str
     rounds: int
     converged: bool
     new_per_round: list[int]
     slots: np.ndarray
+    grid: TileGrid
 
 
 def create_state(path: str, shape: tuple[int, int], tile: int, lattice: int = 1) -> None:
@@ -391,7 +392,7 @@ def grow_tiles(
                              if opts.densify == "field" else (_fill_task, "fill", "dense matching (fill)"))
         slots = _tile_pass(task, name, phase, base_reader, dist_reader, grid, mapping, state, slots, band=band,
                            dist_band=dist_band, opts=opts, job=job)
-    return DenseResult(state, rounds, not pending, per_round, _slot_grid(grid, slots))
+    return DenseResult(state, rounds, not pending, per_round, _slot_grid(grid, slots), grid)
 
 
 def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: WindowReader, band: int, dist_band: int,
@@ -610,7 +611,9 @@ def dense_field(result: DenseResult, fallback: tuple[da.Array, da.Array], postfi
     """
     from ..status import Status
 
-    grid = TileGrid.from_chunks(fallback[0].chunks)
+    grid = result.grid
+    if fallback[0].chunks != grid.chunks:
+        raise ValueError(f"the fallback's chunks {fallback[0].chunks} are not the dense tiles {grid.chunks}")
     stack = da.map_blocks(
         _dense_block, chunks=((6,), *fallback[0].chunks), dtype=np.float32,
         state=result.store, slots=result.slots, grid=grid, postfilter_options=postfilter_options,

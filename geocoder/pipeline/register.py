@@ -206,6 +206,7 @@ def find_tiepoints(
     prior: np.ndarray | None = None,
     points: tuple[InterestPoints, InterestPoints] | None = None,
     overviews: tuple[np.ndarray, np.ndarray] | None = None,
+    grid: TileGrid | None = None,
 ) -> tuple[TiePoints, PolyMap, CoarseAlignment]:
     """Coarse alignment, interest points and correspondence passes; gathered tie points.
 
@@ -213,7 +214,8 @@ def find_tiepoints(
     start of the coarse alignment; ``points`` are the interest points of both scenes when
     they are known already (a scene in several pairs is searched once); ``overviews`` those
     the coarse alignment runs on, when made already (see
-    :func:`geocoder.pipeline.coarse.submit_coarse_alignment`).
+    :func:`geocoder.pipeline.coarse.submit_coarse_alignment`); ``grid`` the job's tiles
+    (default: the base's chunks).
     """
     def cached(stage, make):
         return make() if job is None else job.cached(stage, make)
@@ -248,7 +250,7 @@ def find_tiepoints(
     for pts, scene in ((bpts, base), (dpts, dist)):
         if len(pts) < opts.min_tiepoints:
             raise InputError(scene.attrs["source"], f"has too little texture: {len(pts)} interest points found")
-    grid = TileGrid.from_chunks(base.data.chunks[1:])
+    grid = grid or TileGrid.from_chunks(base.data.chunks[1:])
     predict = coarse.mapping
     copts = opts.correspondence
     tp, mapping = TiePoints.empty(), predict
@@ -438,11 +440,10 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
         job.save("content")
     breader = WindowReader(job.file("base.zarr"))
     dreader = WindowReader(job.file("distorted.zarr"))
+    grid = TileGrid.from_chunks(bscene.data.chunks[1:])  # the job's tiles, from here down
     tp, mapping, coarse = find_tiepoints(bscene, dscene, breader, dreader, opts, summary, timer, job,
-                                         overviews=(reduced[0][3], reduced[1][3]) if fresh else None)
-    chunks = bscene.data.chunks[1:]
-    grid = TileGrid.from_chunks(chunks)
-    dx, dy = polynomial_displacement(mapping, chunks)
+                                         overviews=(reduced[0][3], reduced[1][3]) if fresh else None, grid=grid)
+    dx, dy = polynomial_displacement(mapping, grid.chunks)
     extra = {}
     if opts.dense:
         with timer("dense matching"):
@@ -461,7 +462,7 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
                 correlation = 2 * opts.matching.alsc.radius + 1
                 rows, fits = row_corrections(field_, (dx, dy), opts.lines, correlation=correlation,
                                              sums=field_.get("line_sums"))
-                field_ = line_field(result.store, chunks, mapping, rows, fits, opts.lines, correlation=correlation)
+                field_ = line_field(result.store, grid.chunks, mapping, rows, fits, opts.lines, correlation=correlation)
         dx, dy = field_["dx"], field_["dy"]
         extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
     registered = resample(dreader, dx, dy, method=opts.resampling)
