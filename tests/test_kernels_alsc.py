@@ -15,9 +15,9 @@ from geocoder.kernels.alsc import (
     Exit,
     alsc,
     alsc_point,
-    alsc_reference,
     gradients,
 )
+from geocoder.kernels.alsc_reference import alsc_reference
 
 SIZE = 384
 RADIUS = 7
@@ -393,7 +393,7 @@ def _step_many(base, dist, cols, rows, init, options, step_tol):
 @pytest.mark.parametrize("interpolation", ["bilinear", "cubic"])
 @pytest.mark.parametrize("offset,step_tol,expected", [(0.01, 0.05, Exit.ACCEPTED), (0.5, 0.05, Exit.NOT_CONVERGED)])
 def test_step_numba_matches_reference(scene: Scene, interpolation, offset, step_tol, expected) -> None:
-    from geocoder.kernels.alsc import alsc_step_reference
+    from geocoder.kernels.alsc_reference import alsc_step_reference
 
     options = AlscOptions(interpolation=interpolation)
     idx = np.arange(0, scene.cols.size, scene.cols.size // 6)[:6]
@@ -421,7 +421,7 @@ def test_step_numba_matches_reference(scene: Scene, interpolation, offset, step_
 
 
 def test_step_outside_and_nodata(scene: Scene) -> None:
-    from geocoder.kernels.alsc import alsc_step_reference
+    from geocoder.kernels.alsc_reference import alsc_step_reference
 
     base = scene.base.astype(np.float32)
     dist = scene.dist.astype(np.float32)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import read_band
 
-from geocoder.kernels import fieldlsq
+from geocoder.kernels import fieldlsq, window_sums
 from geocoder.kernels.alsc import AlscOptions, alsc
 from geocoder.kernels.fieldlsq import field_lsq, template_solution_reference
 from geocoder.match.densify import lattice_start
@@ -82,7 +82,7 @@ def test_kernel_solution_equals_design_matrix_reference(case):
     h, w = t.shape
     iw, gx, gy = (np.full((h, w), np.nan) for _ in range(3))
     whole = np.array([0, h, 0, w], dtype=np.int64)
-    fieldlsq._warp(d, x0, y0, whole, iw, gx, gy)
+    window_sums._warp(d, x0, y0, whole, iw, gx, gy)
     sol = np.full((8, h, w), np.nan)
     stats = np.full((5, h, w), np.nan)
     qx, qy = 3.7, -1.2  # any reference: the centring is exact
@@ -172,13 +172,13 @@ def test_ldl_solve8_against_numpy():
         nmat = a.T @ a
         rhs = rng.normal(size=8)
         sol = np.full(8, np.nan)
-        ok, d6, d7, l76 = fieldlsq._ldl_solve8(nmat, rhs, sol, True)
+        ok, d6, d7, l76 = window_sums._ldl_solve8(nmat, rhs, sol, True)
         assert ok
         np.testing.assert_allclose(sol, np.linalg.solve(nmat, rhs), rtol=1e-8)
         inv = np.linalg.inv(nmat)[6:, 6:]
         np.testing.assert_allclose([1 / d6 + l76**2 / d7, -l76 / d7, 1 / d7], [inv[0, 0], inv[0, 1], inv[1, 1]], rtol=1e-8)
         part = np.full(8, np.nan)
-        fieldlsq._ldl_solve8(nmat, rhs, part, False)
+        window_sums._ldl_solve8(nmat, rhs, part, False)
         np.testing.assert_allclose(part[4:], sol[4:], rtol=1e-12)
     singular = np.ones((8, 8))
-    assert not fieldlsq._ldl_solve8(singular, np.ones(8), np.empty(8), True)[0]
+    assert not window_sums._ldl_solve8(singular, np.ones(8), np.empty(8), True)[0]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from geocoder.quality.postfilter import PostFilterOptions, halo, postfilter, postfilter_reference
+from geocoder.quality.postfilter import PostFilterOptions, halo, postfilter
+from geocoder.quality.postfilter_reference import postfilter_reference
 from geocoder.status import Status
 
 OUT, OK, FILLED, BLUNDER, NOTEX, MODEL = (np.uint8(s) for s in (Status.OUTSIDE, Status.MATCHED, Status.FILLED, Status.BLUNDER, Status.NO_TEXTURE, Status.MODEL))

@@ -142,10 +142,11 @@ def fill_reference(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Numpy/reference version of :func:`fill_lines` (for the tests): new ``params, code``.
 
-    Uses :func:`~geocoder.kernels.alsc.alsc_step_reference` and
-    :func:`~geocoder.kernels.alsc.alsc_reference` pixel by pixel (slow; small windows only).
+    Uses :func:`~geocoder.kernels.alsc_reference.alsc_step_reference` and
+    :func:`~geocoder.kernels.alsc_reference.alsc_reference` pixel by pixel (slow; small windows only).
     """
-    from ..kernels.alsc import Exit, alsc_reference, alsc_step_reference
+    from ..kernels.alsc import Exit
+    from ..kernels.alsc_reference import alsc_reference, alsc_step_reference
 
     params = params.copy()
     code = code.copy()
