@@ -28,7 +28,8 @@ Why the TIFF structure is written here (``struct`` + ``zlib``) rather than with 
 before the data, the smallest overview's tiles first, GDAL's ghost area, tile leaders) are
 about byte order in the file, which is simplest to get exactly right when the writer places
 every byte itself; the TIFF part is ~150 lines. GDAL's COG driver is not used because it
-computes the tiles in one process.
+computes the tiles in one process. That writer, the overview levels it streams and the tile
+tasks are why the module is over 500 lines.
 
 The file is written under a hidden temporary name next to the output and renamed into place
 when complete (:func:`geocoder.outputs.commit_output`); an existing output is replaced only

@@ -206,7 +206,7 @@ def test_smoothing_does_not_depend_on_the_tiling(client, tmp_path):
 
 def _fit_field(h: int, w: int, along, sigma: float, seed: int = 0):
     """Rows whose residual is ``along(u, row)`` plus independent noise of ``sigma`` px, all matched."""
-    from geocoder.quality.lines import line_coordinate
+    from geocoder.quality.line_fits import line_coordinate
 
     rng = np.random.default_rng(seed)
     u = line_coordinate(np.arange(w), w)[None, :]
@@ -227,7 +227,7 @@ def _shrunk(noisy, sigma, order, chunk, client, tmp_path):
 
 
 def test_fit_sums_of_blocks_add_up_to_the_whole_row():
-    from geocoder.quality.lines import fit_sums
+    from geocoder.quality.line_fits import fit_sums
 
     rng = np.random.default_rng(2)
     h, w = 5, 90
@@ -283,7 +283,7 @@ def test_whole_lines_take_their_shift_and_the_smooth_part_and_do_not_depend_on_t
     untextured stretch, the template's margin): the polynomial plus the smooth part along the
     lines fitted to all lines' matches plus the line's own shift (issue 14)."""
     from geocoder import Status
-    from geocoder.quality.lines import line_coordinate
+    from geocoder.quality.line_fits import line_coordinate
 
     h, w = 48, 700
     cols = np.arange(w)
@@ -322,7 +322,7 @@ def test_whole_lines_take_their_shift_and_the_smooth_part_and_do_not_depend_on_t
 def test_smooth_fit_leaves_the_lines_shifts_to_the_lines():
     """The smooth part is fitted about each line's mean: a shift per line, however large, does
     not leak into it, and the adjusted sums' means are the shifts."""
-    from geocoder.quality.lines import TERMS, smooth_fit, smooth_values, term_sums
+    from geocoder.quality.line_fits import TERMS, smooth_fit, smooth_values, term_sums
 
     h, w = 30, 200
     rng = np.random.default_rng(2)

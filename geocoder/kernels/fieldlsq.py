@@ -32,7 +32,8 @@ correlation coefficient of ``T`` and ``I`` over the template.
 The window sums ``sum u^a v^b f`` (``a + b <= 2``) come from prefix sums along each row
 (moments about the centre from those of the column index) and a direct sum over the
 ``2 ry + 1`` rows, kept in a ring buffer of rows, so memory is a few rows per channel
-(:mod:`geocoder.kernels.window_sums`, with the normal equations made from them).
+(:mod:`geocoder.kernels.window_sums`, with the normal equations made from them; this
+module, a little over 500 lines, is the solve per window, the rounds and the acceptance).
 
 That is ``gradients="image"``. The default, ``gradients="template"``, takes the design's
 slopes from the base template (its central differences: fixed, and free of the resampled

@@ -6,7 +6,7 @@ pitch shift a whole scene row at once, and a rotated scene's row crosses many re
 Where nothing was matched, the residual ``field - model`` is modelled as ``P(u, v) + t(row)``:
 
 * ``P``, a low-order polynomial of the scene column ``u`` (and ``u`` times powers of the scene
-  row ``v``, :data:`geocoder.quality.lines.TERMS`): how the adjusted model errs along the rows
+  row ``v``, :data:`geocoder.quality.line_fits.TERMS`): how the adjusted model errs along the rows
   (with sparse control the model of a scene far from it can be pixels off, smoothly). It is fitted to the matches of
   every row about that row's own mean, so the rows' shifts do not enter it;
 * ``t``, each scene row's own shift: the mean residual of its matches after ``P``; rows without
@@ -26,16 +26,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..quality.lines import (
+from ..quality.line_fits import (
     NTERM_SUMS,
-    SUMS,
     TERMS,
-    combine_sums,
-    line_corrections,
     smooth_fit,
     smooth_values,
     term_values,
     terms,
+)
+from ..quality.lines import (
+    SUMS,
+    combine_sums,
+    line_corrections,
 )
 from ..status import Status
 
@@ -51,7 +53,7 @@ def _scene_lines(pdx: np.ndarray, pdy: np.ndarray, row0: int, col0: int) -> tupl
 
 
 #: Rows of :func:`scene_line_sums`: :data:`~geocoder.quality.lines.SUMS`, then the moments of
-#: the smooth part's terms (:func:`geocoder.quality.lines.term_sums`).
+#: the smooth part's terms (:func:`geocoder.quality.line_fits.term_sums`).
 NSUMS = len(SUMS) + NTERM_SUMS
 
 
@@ -78,7 +80,7 @@ def scene_line_sums(dx: np.ndarray, dy: np.ndarray, status: np.ndarray, pdx: np.
         Per scene row: :data:`~geocoder.quality.lines.SUMS` of the residuals ``d - p`` (no
         sigmas: the neighbours' errors are not in the matches', see
         :mod:`geocoder.mosaic.dense_neighbours`; ``first``, ``last`` in scene columns), then
-        the terms' moments as :func:`~geocoder.quality.lines.term_sums` has them, by scene row.
+        the terms' moments as :func:`~geocoder.quality.line_fits.term_sums` has them, by scene row.
         Blocks add up (:func:`combine_line_sums`).
     """
     lines = shape[0]
@@ -109,7 +111,7 @@ def combine_line_sums(parts: np.ndarray) -> np.ndarray:
 
 def line_table(sums: np.ndarray, *, min_count: int, max_gap: int, end_rows: int) -> np.ndarray:
     """The corrections of a scene: the smooth part along its rows and a shift per row
-    (:func:`geocoder.quality.lines.smooth_fit`, :func:`geocoder.quality.lines.line_corrections`).
+    (:func:`geocoder.quality.line_fits.smooth_fit`, :func:`geocoder.quality.lines.line_corrections`).
 
     Returns
     -------

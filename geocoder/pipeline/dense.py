@@ -16,6 +16,11 @@ round is over. So a task that runs twice (its worker died, or the whole job was 
 and rerun) reads the same input and writes the same output: the result does not depend on
 failures. With a :class:`~geocoder.pipeline.job.Job`, the round's seeds and slots are
 stored at the start of every round and each tile's result when it finishes.
+
+The module is over 500 lines because everything in it reads or writes that one store
+through its layout (two slots, the compact lattice, :func:`create_state`, :func:`_read_state`):
+the rounds, the every-pixel passes and the field's tiles; the kernels they run live in
+:mod:`geocoder.match` and :mod:`geocoder.kernels`.
 """
 
 from __future__ import annotations

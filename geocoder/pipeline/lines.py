@@ -16,26 +16,28 @@ import dask.array as da
 import numpy as np
 
 from ..kernels.polynomial import PolyMap
-from ..quality.lines import (
+from ..quality.line_fits import (
     FIT_SUMS,
     NTERM_SUMS,
-    SUMS,
-    LineCorrection,
     LineFit,
-    LineOptions,
-    combine_sums,
     fit_sums,
     fit_table,
-    hole_estimates,
     line_coordinate,
-    line_corrections,
     line_fits,
-    line_sums,
     shrink_block,
     smooth_fit,
-    smooth_matches,
     smooth_values,
     term_sums,
+)
+from ..quality.lines import (
+    SUMS,
+    LineCorrection,
+    LineOptions,
+    combine_sums,
+    hole_estimates,
+    line_corrections,
+    line_sums,
+    smooth_matches,
 )
 from ..status import Status
 from ..tiles import Window
@@ -43,8 +45,8 @@ from ..tiles import Window
 
 def tile_sums(dx, dy, px, py, status, sigma_x, sigma_y, *, row0: int, col0: int, shape: tuple[int, int]) -> np.ndarray:
     """The per-row sums of one tile of a dense field that :func:`row_corrections` adds up:
-    :data:`~geocoder.quality.lines.SUMS`, :data:`~geocoder.quality.lines.FIT_SUMS`, then the
-    :func:`~geocoder.quality.lines.term_sums`, shape ``(n, rows, 1)``; ``dx, dy`` the field
+    :data:`~geocoder.quality.lines.SUMS`, :data:`~geocoder.quality.line_fits.FIT_SUMS`, then the
+    :func:`~geocoder.quality.line_fits.term_sums`, shape ``(n, rows, 1)``; ``dx, dy`` the field
     (the polynomial where not usable), ``px, py`` the polynomial, ``row0, col0`` the tile's
     first pixel in a scene of ``shape``."""
     usable = (status == Status.MATCHED) | (status == Status.FILLED)
@@ -117,7 +119,7 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
 
 
 #: Columns of the per-row table of :func:`line_field` (from :class:`LineCorrection`), before the
-#: fits' :data:`~geocoder.quality.lines.FIT_TABLE` columns.
+#: fits' :data:`~geocoder.quality.line_fits.FIT_TABLE` columns.
 ROW_TABLE = ("first", "last", "cx", "cy", "sx", "sy")
 
 
@@ -221,7 +223,7 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np
     """Every unmatched pixel of a corrected row estimated (float32 ``dx, dy, sigma_x, sigma_y``, uint8 ``status``).
 
     A row's estimate is the polynomial plus the smooth part along the lines (``part``,
-    :func:`~geocoder.quality.lines.smooth_fit` at the block's pixels, ``(2, h, w)``) plus the
+    :func:`~geocoder.quality.line_fits.smooth_fit` at the block's pixels, ``(2, h, w)``) plus the
     row's shift (:data:`ROW_TABLE`'s ``cx, cy``), along the whole row: roll and pitch move a
     whole scan line, and the smooth part is how the polynomial errs, fitted to every line's
     matches. Its sigma is the row's spread about that (``sx, sy``). Pixels flagged

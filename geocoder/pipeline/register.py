@@ -3,6 +3,11 @@
 Ingest both scenes to Zarr, align coarsely, find interest points and tie points tile by
 tile, fit a robust global polynomial on one node, then resample the original distorted
 image once onto the base grid, writing everything to one Zarr store atomically.
+
+The module is over 500 lines because it is the job's driver: :func:`find_tiepoints` and
+:func:`register` call the stages in order (their graphs live in :mod:`.detect`,
+:mod:`.correspond`, :mod:`.dense`, :mod:`.lines` and :mod:`.resample`), with the input checks,
+the resume points and the output's layout beside them.
 """
 
 from __future__ import annotations

@@ -53,6 +53,8 @@ O(window) per pixel without sorting; later passes only revisit pixels within
 ``window // 2`` of a pixel removed in the pass before, as no other window has
 changed.  :mod:`geocoder.quality.postfilter_reference` is a vectorised numpy
 implementation of the same rules (``numpy.nanmedian``, ``numpy.polyfit``), kept for the tests.
+The sorted windows' small numba kernels (insert, remove, replace, find) and the two passes
+are why the module is over 500 lines.
 """
 
 from __future__ import annotations

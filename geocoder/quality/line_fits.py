@@ -1,0 +1,336 @@
+"""Fits along the scan lines (issue 14): the smooth part the global polynomial leaves, and each line's own fit.
+
+* :func:`term_sums` and :func:`smooth_fit`: what the global polynomial leaves is not one
+  shift per line only; it also errs smoothly along the lines (most at the scene's edges).
+  A polynomial ``P`` of the line coordinate (:data:`TERMS`) is fitted to every line's
+  residuals about that line's mean, by least squares over all lines, and taken off the
+  lines' sums before :func:`geocoder.quality.lines.line_corrections`.
+* :func:`fit_sums` and :func:`line_fits`: a low-order polynomial of the line coordinate per
+  line, fitted to its matches with a prior from all lines, and :func:`shrink_block`, which
+  shrinks every match toward its line's fit by how far the lines stray from their fits
+  beyond the matches' noise.
+
+Row sums are computed per tile and added over a row band, as in :mod:`geocoder.quality.lines`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Quantities :func:`fit_sums` returns per row, all added over the blocks of a row band: the
+#: moments ``sum(u^k)`` of the line coordinate of the matches, ``sum(r u^k)`` of their residuals
+#: in x and y, the residuals' squares and the matches' variances.
+FIT_SUMS = ("u0", "u1", "u2", "u3", "u4", "xu0", "xu1", "xu2", "yu0", "yu1", "yu2", "xx", "yy", "vx", "vy")
+
+
+def line_coordinate(cols: np.ndarray, width: int) -> np.ndarray:
+    """Column -> ``u`` in [-1, 1] across the scene's width (the fits' coordinate along a line)."""
+    half = max(0.5 * (width - 1), 1.0)
+    return (np.asarray(cols, np.float64) - 0.5 * (width - 1)) / half
+
+
+#: Terms of the smooth part along the lines, as powers ``(a, b)`` of ``u`` (the column,
+#: :func:`line_coordinate`) and ``v`` (the row, likewise across the height): how the global
+#: model errs along the lines. No term in ``v`` alone: each line's own shift holds that.
+TERMS = ((1, 0), (2, 0), (1, 1))
+_PAIRS = tuple((i, j) for i in range(len(TERMS)) for j in range(i, len(TERMS)))
+#: Rows of :func:`term_sums`: per term its sum, the sums of the products of two terms (upper
+#: triangle), the sums of term times residual in x, then in y.
+NTERM_SUMS = 3 * len(TERMS) + len(_PAIRS)
+_UMAX = max(a for a, _ in TERMS)
+
+
+def terms(cols: np.ndarray, rows: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The :data:`TERMS` at (broadcast) ``cols`` and ``rows`` of a scene of ``shape``, (len(TERMS), ...)."""
+    u = line_coordinate(cols, shape[1])
+    v = line_coordinate(rows, shape[0])
+    return np.stack([u**a * v**b for a, b in TERMS])
+
+
+def term_sums(rx: np.ndarray, ry: np.ndarray, usable: np.ndarray, *, row0: int, col0: int,
+              shape: tuple[int, int]) -> np.ndarray:
+    """Per row of a block: the moments of the :data:`TERMS` over its usable pixels (:data:`NTERM_SUMS`).
+
+    Parameters
+    ----------
+    rx, ry : ndarray (h, w)
+        Residuals ``d - polynomial``.
+    usable : ndarray of bool (h, w)
+        The pixels :func:`line_sums` counts.
+    row0, col0 : int
+        The block's first pixel in the scene.
+    shape : (int, int)
+        The scene's rows and columns.
+
+    Returns
+    -------
+    ndarray (NTERM_SUMS, h), float64
+    """
+    h, w = usable.shape
+    # a term is u^a v^b with v constant along a row: every row sum is a sum of powers of u,
+    # one matrix product per quantity instead of a plane per term and product
+    upow = line_coordinate(np.arange(col0, col0 + w), shape[1])[:, None] ** np.arange(2 * _UMAX + 1)
+    v = line_coordinate(np.arange(row0, row0 + h), shape[0])
+    ok = np.asarray(usable, np.float64)
+    s_u = ok @ upow
+    s_x = np.where(usable, np.asarray(rx, np.float64), 0.0) @ upow[:, : _UMAX + 1]
+    s_y = np.where(usable, np.asarray(ry, np.float64), 0.0) @ upow[:, : _UMAX + 1]
+    rows = [s_u[:, a] * v**b for a, b in TERMS]
+    rows += [s_u[:, TERMS[i][0] + TERMS[j][0]] * v ** (TERMS[i][1] + TERMS[j][1]) for i, j in _PAIRS]
+    rows += [s[:, a] * v**b for s in (s_x, s_y) for a, b in TERMS]
+    return np.stack(rows)
+
+
+def term_values(phi: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per pixel, the quantities whose sums :func:`term_sums` gives, in its order.
+
+    Parameters
+    ----------
+    phi : ndarray (len(TERMS), ...)
+        The :data:`TERMS` at the pixels (:func:`terms`).
+    x, y : ndarray (...)
+        Their residuals.
+
+    Returns
+    -------
+    ndarray (NTERM_SUMS, ...)
+        The terms, the products of two terms (upper triangle), term times ``x``, term times ``y``.
+    """
+    return np.concatenate([phi, np.stack([phi[i] * phi[j] for i, j in _PAIRS]), phi * x, phi * y])
+
+
+def smooth_fit(sums: np.ndarray, moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The smooth part along the lines, and the lines' sums with it taken off.
+
+    The residuals of the usable pixels are modelled as ``P(u, v) + t(line)``: ``P`` a
+    combination of the :data:`TERMS`, ``t`` each line's own shift. ``P`` is fitted to every
+    line's residuals about that line's mean (so the lines' shifts do not enter it), by least
+    squares over all lines.
+
+    Parameters
+    ----------
+    sums : ndarray (10, H)
+        :data:`SUMS` of whole lines.
+    moments : ndarray (NTERM_SUMS, H)
+        :func:`term_sums` of whole lines.
+
+    Returns
+    -------
+    coef : ndarray (2, len(TERMS))
+        ``P``'s coefficients in x and y (zero where the terms are not determined).
+    adjusted : ndarray (10, H)
+        ``sums`` of the residuals minus ``P``: their means are the lines' shifts, their
+        spreads how far each line is from ``P`` plus one shift.
+    """
+    nt = len(TERMS)
+    n = sums[0]
+    s_phi = moments[:nt]
+    s_pp = moments[nt : nt + len(_PAIRS)]
+    s_pr = moments[nt + len(_PAIRS) :].reshape(2, nt, -1)
+    safe = np.maximum(n, 1.0)
+    gram = np.zeros((nt, nt))
+    for m, (i, j) in enumerate(_PAIRS):
+        gram[i, j] = gram[j, i] = np.sum(s_pp[m] - s_phi[i] * s_phi[j] / safe)
+    coef = np.zeros((2, nt))
+    diag = np.diag(gram)
+    if np.all(diag > 0):
+        scale = np.sqrt(diag)
+        if np.linalg.cond(gram / np.outer(scale, scale)) < 1e8:
+            for a, r in enumerate((sums[1], sums[2])):
+                coef[a] = np.linalg.solve(gram, np.sum(s_pr[a] - s_phi * (r / safe), axis=1))
+    adjusted = np.array(sums, dtype=np.float64, copy=True)
+    for a in (0, 1):
+        c = coef[a]
+        quad = np.zeros(n.shape)
+        for m, (i, j) in enumerate(_PAIRS):
+            quad += (1.0 if i == j else 2.0) * c[i] * c[j] * s_pp[m]
+        adjusted[1 + a] = sums[1 + a] - c @ s_phi
+        adjusted[3 + a] = np.maximum(sums[3 + a] - 2.0 * (c @ s_pr[a]) + quad, 0.0)
+    return coef, adjusted
+
+
+def smooth_values(coef: np.ndarray, cols: np.ndarray, rows: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``P`` (:func:`smooth_fit`) in x and y at (broadcast) ``cols`` and ``rows``, shape (2, ...)."""
+    return np.tensordot(coef, terms(cols, rows, shape), axes=1)
+
+
+def fit_sums(rx: np.ndarray, ry: np.ndarray, sx: np.ndarray, sy: np.ndarray, matched: np.ndarray, *,
+             col0: int = 0, width: int) -> np.ndarray:
+    """Per row of a block: :data:`FIT_SUMS` of its matches (those with a sigma).
+
+    Parameters
+    ----------
+    rx, ry : ndarray (H, W)
+        Residuals ``d - polynomial``.
+    sx, sy : ndarray (H, W)
+        The matches' sigmas.
+    matched : ndarray of bool (H, W)
+    col0 : int
+        Column of the block's first pixel in the scene.
+    width : int
+        The scene's width (px).
+
+    Returns
+    -------
+    ndarray (15, H), float64
+    """
+    ok = matched & np.isfinite(sx) & np.isfinite(sy) & np.isfinite(rx) & np.isfinite(ry)
+    upow = line_coordinate(np.arange(ok.shape[-1]) + col0, width)[:, None] ** np.arange(5)
+    x = np.where(ok, np.asarray(rx, np.float64), 0.0)
+    y = np.where(ok, np.asarray(ry, np.float64), 0.0)
+    vx = np.where(ok, np.asarray(sx, np.float64) ** 2, 0.0)
+    vy = np.where(ok, np.asarray(sy, np.float64) ** 2, 0.0)
+    return np.concatenate([(ok.astype(np.float64) @ upow).T, (x @ upow[:, :3]).T, (y @ upow[:, :3]).T,
+                           np.stack([(x * x).sum(axis=-1), (y * y).sum(axis=-1), vx.sum(axis=-1), vy.sum(axis=-1)])])
+
+
+@dataclass(frozen=True)
+class LineFit:
+    """Per row, a polynomial of the line coordinate ``u`` (:func:`line_coordinate`) fitted to
+    the residuals of the line's matches (:func:`line_fits`).
+
+    Attributes
+    ----------
+    cx, cy : ndarray (H, 3)
+        Coefficients of ``1, u, u^2`` (zero beyond the order) in x and y.
+    tau2_x, tau2_y : ndarray (H,)
+        Variance of the residuals about the fit beyond the matches' own noise (px^2): how far
+        the line departs from the fit.
+    spread_x, spread_y : ndarray (H,)
+        Variance of the residuals about the fit (px^2).
+    lev : ndarray (2, H, 5)
+        Coefficients of ``1, u, ..., u^4`` of the variance of the fit at ``u`` (px^2), in x and
+        y (at most the spread: a fit is never less certain than one match).
+    ok : ndarray of bool (H,)
+        Rows with a fit (enough matches).
+    """
+
+    cx: np.ndarray
+    cy: np.ndarray
+    tau2_x: np.ndarray
+    tau2_y: np.ndarray
+    spread_x: np.ndarray
+    spread_y: np.ndarray
+    lev: np.ndarray
+    ok: np.ndarray
+
+
+#: Columns of :func:`fit_table`: per row, whether it has a fit, then per axis the fit's
+#: coefficients, ``tau2``, the spread and the quartic of the fit's variance.
+FIT_TABLE = ("ok", "cx0", "cx1", "cx2", "cy0", "cy1", "cy2", "tau2_x", "tau2_y", "spread_x", "spread_y",
+             *(f"vx{k}" for k in range(5)), *(f"vy{k}" for k in range(5)))
+
+
+def fit_table(fits: LineFit) -> np.ndarray:
+    """The :class:`LineFit` as one (H, 21) float64 table (columns :data:`FIT_TABLE`)."""
+    return np.column_stack([fits.ok.astype(np.float64), fits.cx, fits.cy, fits.tau2_x, fits.tau2_y, fits.spread_x,
+                            fits.spread_y, fits.lev[0], fits.lev[1]])
+
+
+def shrink_block(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray, matched: np.ndarray,
+                 sx: np.ndarray, sy: np.ndarray, u: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The matches of a block shrunk toward their lines' fits (see
+    :func:`geocoder.pipeline.lines.shrink_to_lines`).
+
+    Parameters
+    ----------
+    dx, dy, px, py : ndarray (h, w)
+        The field and the polynomial's displacement.
+    matched : ndarray of bool (h, w)
+    sx, sy : ndarray (h, w)
+        The matches' sigmas.
+    u : ndarray (w,)
+        The line coordinate of the block's columns (:func:`line_coordinate`).
+    table : ndarray (h, 21)
+        :func:`fit_table` of the block's rows.
+
+    Returns
+    -------
+    dx, dy, sx, sy : ndarray of float32 (h, w)
+    """
+    t = np.asarray(table, np.float64)
+    uu = np.asarray(u, np.float64)[None, :]
+    powers = [np.ones_like(uu), uu, uu * uu, uu**3, uu**4]
+    out = []
+    for a, (d, p, sig) in enumerate(((dx, px, sx), (dy, py, sy))):
+        d64, s64 = np.asarray(d, np.float64), np.asarray(sig, np.float64)
+        c = t[:, 1 + 3 * a : 4 + 3 * a]
+        fit = c[:, :1] + c[:, 1:2] * uu + c[:, 2:3] * uu * uu
+        s2 = s64 * s64
+        tau2 = t[:, 7 + a : 8 + a]
+        keep = tau2 / np.maximum(tau2 + s2, 1e-300)
+        quartic = sum(t[:, 11 + 5 * a + k : 12 + 5 * a + k] * powers[k] for k in range(5))
+        v_fit = np.minimum(quartic, t[:, 9 + a : 10 + a])
+        value = p + fit + keep * (d64 - p - fit)
+        sigma = np.sqrt(keep * s2 + (1.0 - keep) ** 2 * v_fit)
+        sel = matched & (t[:, :1] > 0) & np.isfinite(s64) & np.isfinite(d64)
+        out += [np.where(sel, value, d64).astype(np.float32), np.where(sel, sigma, s64).astype(np.float32)]
+    return out[0], out[2], out[1], out[3]
+
+
+def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correlation: int = 51) -> LineFit:
+    """Least-squares polynomial of order ``order`` along every row from :data:`FIT_SUMS`.
+
+    After the global polynomial, what is left of a scanner's displacement along one line is
+    its turbulence (a shift, a rotation) and the polynomial's own error, both smooth along
+    the line; the matches add their noise, pixel by pixel. A low-order fit over the whole
+    line averages that noise away where the line follows it; its covariance counts the
+    matches once per ``correlation`` pixels (neighbouring matches share most of their
+    template). How far the line departs from the fit beyond the matches' noise (``tau2``)
+    says how much of each match to keep (:func:`geocoder.pipeline.lines.shrink_to_lines`):
+    relief or a local distortion makes it large and the matches stand.
+
+    Parameters
+    ----------
+    sums : ndarray (15, H)
+        :data:`FIT_SUMS` of whole rows.
+    order : int
+        0, 1 or 2.
+    min_count : int
+        Fewest matches a row needs for a fit.
+    correlation : int
+        Template length along the line (px): neighbouring matches share most of their template.
+
+    Returns
+    -------
+    LineFit
+    """
+    s = np.asarray(sums, dtype=np.float64)
+    rows = s.shape[1]
+    p = order + 1
+    n = s[0]
+    N = np.empty((rows, p, p))
+    for i in range(p):
+        for j in range(p):
+            N[:, i, j] = s[i + j]
+    ok = n >= max(min_count, p + 1)
+    # rows whose normal matrix is too ill-conditioned to trust (matches bunched in one spot)
+    cond = np.full(rows, np.inf)
+    if ok.any():
+        cond[ok] = np.linalg.cond(N[ok])
+    ok &= cond < 1e8
+    out = {k: np.zeros((rows, 3)) for k in ("cx", "cy")}
+    var = {k: np.zeros(rows) for k in ("tau2_x", "tau2_y", "spread_x", "spread_y")}
+    if not ok.any():
+        return LineFit(**out, **var, lev=np.zeros((2, rows, 5)), ok=ok)
+    inv = np.linalg.inv(N[ok])
+    post = np.zeros((2, int(ok.sum()), p, p))
+    for a, (name, r0, rr, v) in enumerate((("x", 5, 11, 13), ("y", 8, 12, 14))):
+        rhs = s[r0 : r0 + p, ok].T
+        coef = np.einsum("rij,rj->ri", inv, rhs)
+        # residual sum of squares of a least-squares fit: sum(r^2) - coef . rhs
+        ss = np.maximum(s[rr, ok] - np.einsum("ri,ri->r", coef, rhs), 0.0)
+        spread = ss / (n[ok] - p)
+        noise = s[v, ok] / n[ok]
+        out[f"c{name}"][ok, :p] = coef
+        post[a] = (spread * correlation)[:, None, None] * inv
+        var[f"spread_{name}"][ok] = spread
+        var[f"tau2_{name}"][ok] = np.maximum(spread - noise, 0.0)
+    # the fit's variance a(u)^T P a(u), a = (1, u, u^2)[:p], as a quartic in u; x and y apart
+    lev = np.zeros((2, rows, 5))
+    for i in range(p):
+        for j in range(p):
+            lev[:, ok, i + j] += post[:, :, i, j]
+    return LineFit(**out, **var, lev=lev, ok=ok)
