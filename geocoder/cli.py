@@ -116,6 +116,19 @@ overwrite_option = click.option("--overwrite", is_flag=True,
                                 help="Replace an existing output if geocoder wrote it (anything else is never replaced).")
 
 
+def _band_list(value: str | None) -> tuple[int, ...] | None:
+    """``"1,2,3"`` -> (1, 2, 3); a bad list is a usage error naming it."""
+    if value is None:
+        return None
+    try:
+        bands = tuple(int(v) for v in value.split(",") if v.strip())
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is not a comma-separated list of band numbers") from None
+    if len(bands) < 2 or min(bands) < 1 or len(set(bands)) != len(bands):
+        raise click.BadParameter(f"{value!r}: give two or more distinct 1-based bands")
+    return bands
+
+
 @click.group(cls=_Main, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("-v", "--verbose", count=True, help="Log lines of the stages (-vv: debugging output, Dask's logs too).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
@@ -138,6 +151,9 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
 @tile_option
 @click.option("--band", default=1, show_default=True, type=click.IntRange(min=1), help="1-based band used for matching.")
 @click.option("--dist-band", default=None, type=click.IntRange(min=1), help="Band of DISTORTED used for matching (default --band).")
+@click.option("--bands", default=None, callback=lambda ctx, param, v: _band_list(v),
+              help="Comma-separated 1-based bands the dense matching uses at once, e.g. 1,2,3: one geometry, a gain "
+                   "and offset per band (the multispectral Otto-Chau, seed 003 sec. 11). Tie points use --band.")
 @click.option("--order", default=2, show_default=True, type=click.IntRange(1, 3), help="Order of the global polynomial.")
 @click.option("--dense/--no-dense", default=True, show_default=True, help="Match every pixel, or stop at the polynomial.")
 @click.option("--nodata", default=None, type=float, help="Extra nodata value of BASE.")
@@ -149,8 +165,8 @@ def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
 @overwrite_option
 @scheduler_option
 @_friendly
-def register(base, distorted, out, resampling, tile, band, dist_band, order, dense, nodata, dist_nodata, restart, via, overwrite,
-             scheduler):
+def register(base, distorted, out, resampling, tile, band, dist_band, bands, order, dense, nodata, dist_nodata, restart, via,
+             overwrite, scheduler):
     """Register DISTORTED onto the grid of BASE and write OUT (Zarr).
 
     An interrupted run leaves its finished tiles next to OUT; running the same command
@@ -161,7 +177,7 @@ def register(base, distorted, out, resampling, tile, band, dist_band, order, den
     t0 = time.perf_counter()
     ds = run(
         base, distorted, out=out, resampling=resampling, tile=tile, scheduler=scheduler,
-        band=band, dist_band=dist_band, order=order, dense=dense, nodata=nodata, dist_nodata=dist_nodata,
+        band=band, dist_band=dist_band, bands=bands, order=order, dense=dense, nodata=nodata, dist_nodata=dist_nodata,
         resume=not restart, overwrite=overwrite, via=via,
     )
     if via is not None:

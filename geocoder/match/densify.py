@@ -21,6 +21,7 @@ import numpy as np
 
 from ..kernels.alsc import AlscOptions
 from ..kernels.fieldlsq import FieldLsqResult, field_lsq
+from ..kernels.fieldlsq_bands import field_lsq_bands
 
 __all__ = ["lattice_start", "densify_window"]
 
@@ -106,7 +107,21 @@ def densify_window(
     min_fill: float = 0.5,
     gradients: str = "template",
 ) -> FieldLsqResult:
-    """Match every started pixel of ``region`` (see :func:`geocoder.kernels.fieldlsq.field_lsq`)."""
+    """Match every started pixel of ``region`` (see :func:`geocoder.kernels.fieldlsq.field_lsq`).
+
+    ``base`` and ``dist`` (n, h, w) with ``n > 1``: on all bands at once
+    (:func:`geocoder.kernels.fieldlsq_bands.field_lsq_bands`, the template's gradients only).
+    """
+    if np.ndim(base) == 3 and np.shape(base)[0] > 1:
+        if gradients != "template":
+            raise ValueError(f"matching several bands needs densify_gradients='template', got {gradients!r}")
+        return field_lsq_bands(
+            base, dist, x0, y0, started, region, radius=options.radius, radius_y=options.ry,
+            iterations=iterations, tol=tol, max_shift=options.max_shift, min_rho=options.min_rho,
+            max_sigma=options.max_sigma, min_det=options.min_det, min_fill=min_fill,
+        )
+    if np.ndim(base) == 3:
+        base, dist = base[0], dist[0]
     return field_lsq(
         base, dist, x0, y0, started, region, radius=options.radius, radius_y=options.ry,
         iterations=iterations, tol=tol, max_shift=options.max_shift, min_rho=options.min_rho,

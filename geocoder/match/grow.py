@@ -34,6 +34,7 @@ from ..kernels.alsc import (
     Exit,
     alsc_point,
 )
+from ..kernels.alsc_bands import alsc_point_bands
 
 __all__ = ["NFIELDS", "SEED_COLUMNS", "SEED_COL", "SEED_PARAMS", "SEED_ROW", "SEED_WIDTH", "SEED_X", "SEED_Y",
            "UNVISITED", "grow", "grow_window", "seed_rows"]
@@ -103,6 +104,16 @@ def _heap_pop(keys, items, parents, size):
 
 
 @numba.njit(nogil=True, cache=True)
+def _match(base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
+           max_sigma, min_det):  # pragma: no cover - compiled
+    if base.shape[0] == 1:
+        return alsc_point(base[0], dist[0], grad_x[0], grad_y[0], c, r, init, out, radius, radius_y, cubic, max_iter,
+                          tol, max_shift, min_rho, max_sigma, min_det)
+    return alsc_point_bands(base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol,
+                            max_shift, min_rho, max_sigma, min_det)
+
+
+@numba.njit(nogil=True, cache=True)
 def _quality(p):
     return max(p[F_SIGMA_X], p[F_SIGMA_Y])  # smaller is better
 
@@ -117,7 +128,9 @@ def grow(
 
     Parameters
     ----------
-    base, dist, grad_x, grad_y : 2-D float32 windows (see :func:`~geocoder.kernels.alsc.alsc_point`).
+    base, dist, grad_x, grad_y : 3-D float32 windows (bands, rows, cols) (see
+        :func:`~geocoder.kernels.alsc.alsc_point`); with several bands every match is on all of
+        them at once (:func:`~geocoder.kernels.alsc_bands.alsc_point_bands`).
     seeds : float64 (k, SEED_WIDTH)
         Rows of :data:`SEED_COLUMNS`: ``row, col`` (base window) then the start parameters
         (distorted window frame).
@@ -163,7 +176,7 @@ def grow(
             continue
         if (r - lattice_origin[0]) % step != 0 or (c - lattice_origin[1]) % step != 0:
             continue
-        e = alsc_point(
+        e = _match(
             base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
             max_sigma, min_det,
         )
@@ -187,7 +200,7 @@ def grow(
             for j in range(F_A11, NPARAMS):
                 init[j] = p[j]
             tries[r, c] += 1
-            e = alsc_point(
+            e = _match(
                 base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift,
                 min_rho, max_sigma, min_det,
             )
@@ -229,16 +242,22 @@ def grow_window(
     """Python entry to :func:`grow` with options unpacked; returns the number of new matches.
 
     ``params`` holds every ``param_stride``-th column of the window (see :func:`grow`).
+    ``base``, ``dist`` and ``grad`` are one band (2-D) or several (3-D, bands first: matched
+    on all of them at once).
     """
     if param_stride > 1 and (step * col_step) % param_stride:
         raise ValueError(f"param_stride {param_stride} must divide the lattice's column spacing {step * col_step}")
     tries = np.zeros(code.shape, np.uint8)
     offsets = _N4 if neighbours == 4 else _N8
     o = options
+
+    def bands(a: np.ndarray) -> np.ndarray:
+        a = np.asarray(a)
+        return np.ascontiguousarray(a[None] if a.ndim == 2 else a, dtype=np.float32)
+
     return int(
         grow(
-            np.ascontiguousarray(base, dtype=np.float32), np.ascontiguousarray(dist, dtype=np.float32),
-            np.ascontiguousarray(grad[0], dtype=np.float32), np.ascontiguousarray(grad[1], dtype=np.float32),
+            bands(base), bands(dist), bands(grad[0]), bands(grad[1]),
             np.ascontiguousarray(seeds, dtype=np.float64), params, code, tries,
             np.asarray(region, dtype=np.int64), int(step), np.asarray(lattice_origin, dtype=np.int64),
             offsets, int(max_tries), int(col_step), int(param_stride), *o.kernel_args(),

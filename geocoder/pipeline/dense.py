@@ -151,6 +151,63 @@ class DenseOptions:
 
 
 @dataclass(frozen=True)
+class Bands:
+    """The bands the dense matching uses at once, and each band's grey-value scale.
+
+    A window's bands are taken as ``(value - location) / noise`` with the location and noise
+    of the whole band (:func:`geocoder.kernels.alsc_bands.band_scales`), the same in every
+    tile, so the bands weigh by their noise and the result does not depend on the tiling.
+
+    Attributes
+    ----------
+    index : tuple of int
+        0-based bands, the same in both scenes.
+    base_scales, dist_scales : ndarray (n, 2)
+        Location and noise of each band of the base and of the distorted scene.
+    """
+
+    index: tuple[int, ...]
+    base_scales: np.ndarray
+    dist_scales: np.ndarray
+
+    @classmethod
+    def of(cls, base, dist, bands: tuple[int, ...]) -> Bands:
+        """The 1-based ``bands`` of two scenes (``(band, y, x)`` DataArrays), scaled from the
+        central 1024 x 1024 pixels of each (or all of a smaller scene)."""
+        from ..kernels.alsc_bands import band_scales
+
+        index = tuple(int(b) - 1 for b in bands)
+
+        def scales(scene) -> np.ndarray:
+            h, w = scene.sizes["y"], scene.sizes["x"]
+            r0, c0 = max((h - 1024) // 2, 0), max((w - 1024) // 2, 0)
+            return band_scales(np.asarray(scene.data[list(index), r0 : r0 + 1024, c0 : c0 + 1024].compute()))
+
+        return cls(index, scales(base), scales(dist))
+
+    def pick(self, window: np.ndarray, scales: np.ndarray) -> np.ndarray:
+        """The bands of a ``(band, y, x)`` window, scaled, float32 ``(n, y, x)``."""
+        w = np.asarray(window)[list(self.index)]
+        return ((w - scales[:, 0, None, None]) / scales[:, 1, None, None]).astype(np.float32)
+
+
+def _windows(base: np.ndarray, dist: np.ndarray, band: int, dist_band: int,
+             bands: Bands | None) -> tuple[np.ndarray, np.ndarray]:
+    """The matched band of a base and a distorted window (2-D), or with ``bands`` all of them (3-D)."""
+    if bands is None:
+        return base[band], dist[dist_band]
+    return bands.pick(base, bands.base_scales), bands.pick(dist, bands.dist_scales)
+
+
+def _gradients(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`geocoder.kernels.alsc.gradients` of one band, or stacked for each of several."""
+    if dist.ndim == 2:
+        return gradients(dist)
+    each = [gradients(b) for b in dist]
+    return np.stack([g[0] for g in each]), np.stack([g[1] for g in each])
+
+
+@dataclass(frozen=True)
 class DenseResult:
     """Where the state is, how many rounds ran, the matches made per round, and the job's tiles."""
 
@@ -269,7 +326,8 @@ def _route(seeds: np.ndarray, grid: TileGrid, exclude: str | None = None) -> dic
 
 
 def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, dist_reader: WindowReader,
-               band: int, dist_band: int, state: str, slot: int, mapping: PolyMap, opts: DenseOptions, k: int = 1):
+               band: int, dist_band: int, state: str, slot: int, mapping: PolyMap, opts: DenseOptions, k: int = 1,
+               bands: Bands | None = None):
     """Grow one tile from ``seeds``: reads slot ``slot`` of its core, writes slot ``1 - slot``
     (of the compact lattice state when ``k > 1``, see :func:`create_state`).
 
@@ -289,15 +347,15 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     rr0, rr1, rc0, rc1 = tile.window(opts.halo).clip(h, w)
     pad = max(opts.alsc.radius, opts.alsc.ry) + 2
     wr0, wc0 = rr0 - pad, rc0 - pad
-    base = base_reader.read(wr0, rr1 + pad, wc0, rc1 + pad)[band]
     dwin = distorted_window(Tile(0, 0, rr0, rr1, rc0, rc1), mapping, opts.margin + 2 * max(opts.alsc.radius, opts.alsc.ry))
     dr0, dc0 = dwin[0], dwin[2]
-    dist = dist_reader.read(*dwin)[dist_band]
-    grad = gradients(dist)
+    base, dist = _windows(base_reader.read(wr0, rr1 + pad, wc0, rc1 + pad), dist_reader.read(*dwin), band, dist_band,
+                          bands)
+    grad = _gradients(dist)
     # window state: the core's earlier matches, nothing in the halo; ``params`` holds the
     # lattice's columns only when the state does (every k-th, from the core's first)
-    params, p0, (cr, cc) = _param_window(base.shape, k, wc0), -wc0 % k, (tile.row0 - wr0, tile.col0 - wc0)
-    code = np.full(base.shape, UNVISITED, dtype=np.int8)
+    params, p0, (cr, cc) = _param_window(base.shape[-2:], k, wc0), -wc0 % k, (tile.row0 - wr0, tile.col0 - wc0)
+    code = np.full(base.shape[-2:], UNVISITED, dtype=np.int8)
     csl = (slice(cr, cr + tile.row1 - tile.row0), slice(cc, cc + tile.col1 - tile.col0))
     stored = np.moveaxis(_read_core(g, tile, slot, k, "fields", compact=True), 0, -1)
     pc0 = (cc - p0) // k
@@ -347,12 +405,16 @@ def grow_tiles(
     dist_band: int = 0,
     opts: DenseOptions = DenseOptions(),
     job: Job | None = None,
+    bands: Bands | None = None,
 ) -> DenseResult:
     """Run the halo-exchange rounds; the matches end up in the ``state`` store.
 
     With a ``job``, a rerun continues from the round (and the tiles of it) where an
-    earlier run stopped.
+    earlier run stopped. With ``bands``, every match is on those bands at once (not with
+    ``densify="step"``); ``band`` and ``dist_band`` are then not used.
     """
+    if bands is not None and opts.col_step > 1 and opts.densify != "field":
+        raise ValueError("matching several bands needs densify='field'")
     shape = (grid.height, grid.width)
     tiles = {t.key: t for t in grid}
     lat = lattice_step(grid, opts)
@@ -374,7 +436,7 @@ def grow_tiles(
         tasks = {
             k: dask.delayed(_grow_task, pure=False)(
                 tiles[k], pending[k], shape, base_reader, dist_reader, band, dist_band, state, slots[k], mapping, opts,
-                lat, dask_key_name=f"grow-{k}-r{rnd}-{token}",
+                lat, bands, dask_key_name=f"grow-{k}-r{rnd}-{token}",
             )
             for k in keys
         }
@@ -393,7 +455,7 @@ def grow_tiles(
         if job is not None:
             job.save(f"dense-round-{rnd + 1}", (pending, slots, per_round))
     if opts.col_step > 1:
-        task, name, phase = ((partial(_densify_task, lattice=lat), "densify", "dense matching (every pixel)")
+        task, name, phase = ((partial(_densify_task, lattice=lat, bands=bands), "densify", "dense matching (every pixel)")
                              if opts.densify == "field" else (_fill_task, "fill", "dense matching (fill)"))
         slots = _tile_pass(task, name, phase, base_reader, dist_reader, grid, mapping, state, slots, band=band,
                            dist_band=dist_band, opts=opts, job=job)
@@ -456,7 +518,8 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
 
 
 def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: WindowReader, band: int, dist_band: int,
-                  state: str, slots: np.ndarray, grid: TileGrid, mapping: PolyMap, opts: DenseOptions, lattice: int = 1):
+                  state: str, slots: np.ndarray, grid: TileGrid, mapping: PolyMap, opts: DenseOptions, lattice: int = 1,
+                  bands: Bands | None = None):
     """Match every pixel of one tile's core from the lattice (:mod:`geocoder.match.densify`).
 
     Reads the lattice matches of the core grown by the templates of every resampling round
@@ -484,10 +547,9 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
                                     max_gap=opts.densify_gap, max_extend=opts.densify_extend)
     wsl = (slice(None), slice(bc0 - sc0, bc1 - sc0))
     x0, y0, started = x0[wsl], y0[wsl], started[wsl]
-    base = base_reader.read(br0, br1, bc0, bc1)[band]
     dwin = distorted_window(Tile(0, 0, br0, br1, bc0, bc1), mapping, opts.margin)
     dr0, dc0 = dwin[0], dwin[2]
-    dist = dist_reader.read(*dwin)[dist_band]
+    base, dist = _windows(base_reader.read(br0, br1, bc0, bc1), dist_reader.read(*dwin), band, dist_band, bands)
     region = (tile.row0 - br0, tile.row1 - br0, tile.col0 - bc0, tile.col1 - bc0)
     res = densify_window(base, dist, x0 - dc0, y0 - dr0, started, region, options=opts.alsc,
                          iterations=n, tol=opts.densify_tol, gradients=opts.densify_gradients)

@@ -48,7 +48,7 @@ from ..status import Status
 from ..tiles import TileGrid
 from .coarse import overview, overview_factor, submit_coarse_alignment
 from .correspond import fit_global, match_tiles
-from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
+from .dense import Bands, DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points_many
 from .job import Job, JobRun, fingerprint, input_identity
 from .lines import line_field, row_corrections
@@ -78,6 +78,13 @@ class RegisterOptions:
         Interpolator of the single resampling.
     band, dist_band : int
         1-based band matched in the base and the distorted scene (``dist_band`` None: ``band``).
+    bands : tuple of int
+        1-based bands the dense matching uses at once (seed 003 sec. 11, the multispectral
+        Otto-Chau): one geometry and a gain and offset per band in one least-squares system,
+        so a patch without texture in one band matches on the others. The same bands of both
+        scenes, co-registered within each; each band weighs by its grey values scaled to its
+        spread over the whole scene. Empty: ``band`` alone. The coarse alignment, interest points
+        and tie points use ``band``.
     order : int
         Order of the global polynomial (2: the seed's quadratic).
     passes : int
@@ -104,6 +111,7 @@ class RegisterOptions:
     resampling: str = "bilinear"
     band: int = 1
     dist_band: int | None = None
+    bands: tuple[int, ...] = ()
     order: int = 2
     passes: int = 2
     min_tiepoints: int = 12
@@ -125,6 +133,13 @@ class RegisterOptions:
             raise ValueError(f"tile must be a multiple of {self.interest.cell} and >= 64, got {self.tile}")
         if not 1 <= self.order <= 3:
             raise ValueError(f"order must be 1, 2 or 3, got {self.order}")
+        if self.bands:
+            if len(self.bands) < 2 or len(set(self.bands)) != len(self.bands) or min(self.bands) < 1:
+                raise ValueError(f"bands must be two or more distinct 1-based bands, got {self.bands!r}")
+            if self.dist_band is not None:
+                raise ValueError("bands match the same bands of both scenes: dist_band cannot be set with them")
+            if self.matching.col_step > 1 and self.matching.densify != "field":
+                raise ValueError("matching several bands needs the dense stage's densify='field'")
         self.lines.validate()
 
 
@@ -299,6 +314,7 @@ def register(
     scheduler: str | None = None,
     band: int | None = None,
     dist_band: int | None = None,
+    bands: tuple[int, ...] | None = None,
     order: int | None = None,
     dense: bool | None = None,
     nodata: float | None = None,
@@ -333,6 +349,8 @@ def register(
         connect to when no ``client`` is given.
     band, dist_band : int
         1-based band used for matching (``dist_band`` defaults to ``band``).
+    bands : sequence of int, optional
+        1-based bands the dense matching uses at once (:attr:`RegisterOptions.bands`).
     order : int
         Order of the global polynomial (2 = the seed's quadratic).
     dense : bool
@@ -368,13 +386,16 @@ def register(
         when computed in memory.
     """
     if via is not None:
+        if bands or (options is not None and options.bands):
+            raise ValueError("matching several bands (bands) is not available through an intermediate look (via)")
         from .compose import register_via
 
         return register_via(base, distorted, via, out=out, resampling=resampling, tile=tile, client=client,
                             scheduler=scheduler, band=band, dist_band=dist_band, order=order, dense=dense, nodata=nodata,
                             dist_nodata=dist_nodata, options=options, resume=resume, overwrite=overwrite,
                             show_progress=show_progress)
-    given = {"tile": tile, "resampling": resampling, "band": band, "dist_band": dist_band, "order": order, "dense": dense}
+    given = {"tile": tile, "resampling": resampling, "band": band, "dist_band": dist_band, "order": order, "dense": dense,
+             "bands": None if bands is None else tuple(int(b) for b in bands)}
     opts = replace(options or RegisterOptions(), **{k: v for k, v in given.items() if v is not None})
     opts.validate()
     if out is not None:
@@ -388,7 +409,8 @@ def register(
     tile = opts.tile
     bscene = base if isinstance(base, xr.DataArray) else open_scene(base, chunks=tile, nodata=nodata, grid=True)
     dscene = distorted if isinstance(distorted, xr.DataArray) else open_scene(distorted, chunks=tile, nodata=dist_nodata)
-    for scene, b in ((bscene, opts.band), (dscene, opts.dist_band or opts.band)):
+    for scene, b in ((bscene, opts.band), (dscene, opts.dist_band or opts.band), *((s, b) for s in (bscene, dscene)
+                                                                                   for b in opts.bands)):
         if not 1 <= b <= scene.sizes["band"]:
             raise InputError(scene.attrs.get("source"), f"has {scene.sizes['band']} band(s); band {b} does not exist")
     for scene in (bscene, dscene):
@@ -452,9 +474,13 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
     extra = {}
     if opts.dense:
         with timer("dense matching"):
+            bands = None
+            if opts.bands:
+                bands = job.cached("band-scales", lambda: Bands.of(bscene, dscene, opts.bands))
             result = grow_tiles(
                 breader, dreader, grid, seeds_from_tiepoints(tp, mapping), mapping, job.file("dense.zarr"),
                 band=opts.band - 1, dist_band=(opts.dist_band or opts.band) - 1, opts=opts.matching, job=job,
+                bands=bands,
             )
             # the post-filter, stored, with the row sums of the line estimates from the same tasks
             field_ = dense_field(result, (dx, dy), opts.postfilter, store=True, job=job,
