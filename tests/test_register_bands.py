@@ -43,7 +43,7 @@ def _left_figures(ds, pair):
     matched_all = (st == Status.MATCHED) | (st == Status.FILLED)
     return {
         "coverage_left": good.sum() / inside.sum(),
-        "rmse_left": float(np.sqrt(np.mean(err[good] ** 2))),
+        "rmse_left": float(np.sqrt(np.mean(err[good] ** 2))) if good.any() else float("nan"),
         "unflagged_over_1px": int((err[matched_all & np.isfinite(err)] > 1.0).sum()),
     }
 

@@ -55,6 +55,7 @@ from ..match.grow import NFIELDS, SEED_COL, SEED_ROW, SEED_WIDTH, SEED_X, SEED_Y
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
 from ..tiles import Tile, TileGrid, Window
+from .bands import Bands, band_windows, window_gradients
 from .correspond import distorted_window
 from .job import Job, run_tiles
 
@@ -148,63 +149,6 @@ class DenseOptions:
             raise ValueError(f"densify_tol must be positive, got {self.densify_tol!r}")
         if self.densify_gap < 0 or self.densify_extend < 0:
             raise ValueError(f"densify_gap and densify_extend must be >= 0, got {self.densify_gap}, {self.densify_extend}")
-
-
-@dataclass(frozen=True)
-class Bands:
-    """The bands the dense matching uses at once, and each band's grey-value scale.
-
-    A window's bands are taken as ``(value - location) / noise`` with the location and noise
-    of the whole band (:func:`geocoder.kernels.alsc_bands.band_scales`), the same in every
-    tile, so the bands weigh by their noise and the result does not depend on the tiling.
-
-    Attributes
-    ----------
-    index : tuple of int
-        0-based bands, the same in both scenes.
-    base_scales, dist_scales : ndarray (n, 2)
-        Location and noise of each band of the base and of the distorted scene.
-    """
-
-    index: tuple[int, ...]
-    base_scales: np.ndarray
-    dist_scales: np.ndarray
-
-    @classmethod
-    def of(cls, base, dist, bands: tuple[int, ...]) -> Bands:
-        """The 1-based ``bands`` of two scenes (``(band, y, x)`` DataArrays), scaled from the
-        central 1024 x 1024 pixels of each (or all of a smaller scene)."""
-        from ..kernels.alsc_bands import band_scales
-
-        index = tuple(int(b) - 1 for b in bands)
-
-        def scales(scene) -> np.ndarray:
-            h, w = scene.sizes["y"], scene.sizes["x"]
-            r0, c0 = max((h - 1024) // 2, 0), max((w - 1024) // 2, 0)
-            return band_scales(np.asarray(scene.data[list(index), r0 : r0 + 1024, c0 : c0 + 1024].compute()))
-
-        return cls(index, scales(base), scales(dist))
-
-    def pick(self, window: np.ndarray, scales: np.ndarray) -> np.ndarray:
-        """The bands of a ``(band, y, x)`` window, scaled, float32 ``(n, y, x)``."""
-        w = np.asarray(window)[list(self.index)]
-        return ((w - scales[:, 0, None, None]) / scales[:, 1, None, None]).astype(np.float32)
-
-
-def _windows(base: np.ndarray, dist: np.ndarray, band: int, dist_band: int,
-             bands: Bands | None) -> tuple[np.ndarray, np.ndarray]:
-    """The matched band of a base and a distorted window (2-D), or with ``bands`` all of them (3-D)."""
-    if bands is None:
-        return base[band], dist[dist_band]
-    return bands.pick(base, bands.base_scales), bands.pick(dist, bands.dist_scales)
-
-
-def _gradients(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`geocoder.kernels.alsc.gradients` of one band, or stacked for each of several."""
-    if dist.ndim == 2:
-        return gradients(dist)
-    each = [gradients(b) for b in dist]
-    return np.stack([g[0] for g in each]), np.stack([g[1] for g in each])
 
 
 @dataclass(frozen=True)
@@ -349,9 +293,9 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     wr0, wc0 = rr0 - pad, rc0 - pad
     dwin = distorted_window(Tile(0, 0, rr0, rr1, rc0, rc1), mapping, opts.margin + 2 * max(opts.alsc.radius, opts.alsc.ry))
     dr0, dc0 = dwin[0], dwin[2]
-    base, dist = _windows(base_reader.read(wr0, rr1 + pad, wc0, rc1 + pad), dist_reader.read(*dwin), band, dist_band,
+    base, dist = band_windows(base_reader.read(wr0, rr1 + pad, wc0, rc1 + pad), dist_reader.read(*dwin), band, dist_band,
                           bands)
-    grad = _gradients(dist)
+    grad = window_gradients(dist)
     # window state: the core's earlier matches, nothing in the halo; ``params`` holds the
     # lattice's columns only when the state does (every k-th, from the core's first)
     params, p0, (cr, cc) = _param_window(base.shape[-2:], k, wc0), -wc0 % k, (tile.row0 - wr0, tile.col0 - wc0)
@@ -549,7 +493,7 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     x0, y0, started = x0[wsl], y0[wsl], started[wsl]
     dwin = distorted_window(Tile(0, 0, br0, br1, bc0, bc1), mapping, opts.margin)
     dr0, dc0 = dwin[0], dwin[2]
-    base, dist = _windows(base_reader.read(br0, br1, bc0, bc1), dist_reader.read(*dwin), band, dist_band, bands)
+    base, dist = band_windows(base_reader.read(br0, br1, bc0, bc1), dist_reader.read(*dwin), band, dist_band, bands)
     region = (tile.row0 - br0, tile.row1 - br0, tile.col0 - bc0, tile.col1 - bc0)
     res = densify_window(base, dist, x0 - dc0, y0 - dr0, started, region, options=opts.alsc,
                          iterations=n, tol=opts.densify_tol, gradients=opts.densify_gradients)

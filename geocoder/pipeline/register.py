@@ -46,9 +46,10 @@ from ..runtime import dask_client
 from ..scene import WindowReader, ingest_scenes, open_scene
 from ..status import Status
 from ..tiles import TileGrid
+from .bands import Bands
 from .coarse import overview, overview_factor, submit_coarse_alignment
 from .correspond import fit_global, match_tiles
-from .dense import Bands, DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
+from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points_many
 from .job import Job, JobRun, fingerprint, input_identity
 from .lines import line_field, row_corrections
