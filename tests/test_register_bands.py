@@ -76,6 +76,8 @@ def test_bad_bands_are_refused(weak_pair, tmp_path):
     assert r.returncode == 2 and "'1,x' is not a comma-separated list of band numbers" in r.stderr
     r = run("--bands", "2")
     assert r.returncode == 2 and "give two or more distinct 1-based bands" in r.stderr
+    r = run("--bands", "1,2", "--no-dense")
+    assert r.returncode == 2 and "they need dense matching (not --no-dense)" in r.stderr
     r = run("--bands", "1,2,5")
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1] == f"geocoder: error: {base}: has 3 band(s); band 5 does not exist"

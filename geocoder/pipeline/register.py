@@ -83,9 +83,9 @@ class RegisterOptions:
         1-based bands the dense matching uses at once (seed 003 sec. 11, the multispectral
         Otto-Chau): one geometry and a gain and offset per band in one least-squares system,
         so a patch without texture in one band matches on the others. The same bands of both
-        scenes, co-registered within each; each band weighs by its grey values scaled to its
-        spread over the whole scene. Empty: ``band`` alone. The coarse alignment, interest points
-        and tie points use ``band``.
+        scenes, co-registered within each; each band weighs by its grey values scaled to unit
+        noise over the whole scene. Empty: ``band`` alone. The coarse alignment, interest points
+        and tie points use ``band``. Needs ``dense``.
     order : int
         Order of the global polynomial (2: the seed's quadratic).
     passes : int
@@ -139,6 +139,8 @@ class RegisterOptions:
                 raise ValueError(f"bands must be two or more distinct 1-based bands, got {self.bands!r}")
             if self.dist_band is not None:
                 raise ValueError("bands match the same bands of both scenes: dist_band cannot be set with them")
+            if not self.dense:
+                raise ValueError("bands are matched together by the dense stage: they need dense matching (not --no-dense)")
             if self.matching.col_step > 1 and self.matching.densify != "field":
                 raise ValueError("matching several bands needs the dense stage's densify='field'")
         self.lines.validate()
