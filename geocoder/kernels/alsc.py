@@ -569,6 +569,55 @@ def _solve(chol, scale, rhs, sol):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
+def _relaxation(omega, sx, sy, prev_x, prev_y):  # pragma: no cover - compiled
+    """The next relaxation factor: the secant (Aitken) estimate ``q`` of the rate along the
+    ``(x, y)`` steps, ``omega / (1 - q)`` within ``[_MIN_RELAX, 1]`` (1 when ``q >= 1``)."""
+    den = prev_x * prev_x + prev_y * prev_y
+    q = (sx * prev_x + sy * prev_y) / den if den > 0.0 else 0.0
+    if q < 1.0:
+        return min(1.0, max(_MIN_RELAX, omega / (1.0 - q)))
+    return 1.0
+
+
+@numba.njit(nogil=True, cache=True)
+def _shift_covariance(chol, scale, s02, rhs, step):  # pragma: no cover - compiled
+    """``(cxx, cxy, cyy)``: the shift block of ``s02 N^-1`` (the first two columns of the full
+    inverse) from the scaled factor of ``N``; ``rhs`` and ``step`` are work arrays of its size."""
+    for k in range(rhs.shape[0]):
+        rhs[k] = 0.0
+    rhs[0] = 1.0
+    _solve(chol, scale, rhs, step)
+    cxx = s02 * step[0]
+    cxy = s02 * step[1]
+    rhs[0] = 0.0
+    rhs[1] = 1.0
+    _solve(chol, scale, rhs, step)
+    return cxx, cxy, s02 * step[1]
+
+
+@numba.njit(nogil=True, cache=True)
+def _verdict(p, x0, y0, det0, gain, rho, cxx, cxy, cyy, max_shift, min_rho, max_sigma, min_det):
+    # pragma: no cover - compiled
+    """The exit code of a converged match with parameters ``p`` (the tests after ``NOT_CONVERGED``,
+    in the order of :class:`Exit`): moved from ``(x0, y0)``, affine determinant against ``det0``
+    and ``gain``, correlation, the shift covariance's largest eigenvalue."""
+    if math.sqrt((p[0] - x0) ** 2 + (p[1] - y0) ** 2) > max_shift:
+        return _MOVED
+    # det / det0 within [min_det, 1 / min_det], written without divisions
+    det = p[2] * p[5] - p[3] * p[4]
+    ratio = det * det0  # same sign as det / det0
+    if not (det0 != 0.0 and ratio >= min_det * det0 * det0 and ratio * min_det <= det0 * det0 and gain > 0.0):
+        return _DEGENERATE
+    if not (rho >= min_rho):
+        return _LOW_CORRELATION
+    half = 0.5 * (cxx - cyy)
+    largest = 0.5 * (cxx + cyy) + math.sqrt(half * half + cxy * cxy)
+    if not (largest <= max_sigma * max_sigma):
+        return _IMPRECISE
+    return _ACCEPTED
+
+
+@numba.njit(nogil=True, cache=True)
 def alsc_point(
     base, dist, grad_x, grad_y, col, row, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
     max_sigma, min_det,
@@ -678,13 +727,7 @@ def alsc_point(
         sx = step[0]
         sy = step[1]
         if updates > 0:
-            # secant estimate of the rate along the (x, y) step, relaxation for it
-            den = prev_x * prev_x + prev_y * prev_y
-            q = (sx * prev_x + sy * prev_y) / den if den > 0.0 else 0.0
-            if q < 1.0:
-                omega = min(1.0, max(_MIN_RELAX, omega / (1.0 - q)))
-            else:
-                omega = 1.0
+            omega = _relaxation(omega, sx, sy, prev_x, prev_y)
         for k in range(NPARAMS):
             p[k] += omega * step[k]
         updates += 1
@@ -710,36 +753,13 @@ def alsc_point(
         return code
     if not _factor(nmat, scale, chol):
         return _SINGULAR
-    # shift block of sigma0^2 N^-1: the first two columns of the inverse
     s02 = mom[_SEE] / (npix - NPARAMS) if npix > NPARAMS else nan
-    for k in range(NPARAMS):
-        rhs[k] = 0.0
-    rhs[0] = 1.0
-    _solve(chol, scale, rhs, step)
-    cxx = s02 * step[0]
-    cxy = s02 * step[1]
-    rhs[0] = 0.0
-    rhs[1] = 1.0
-    _solve(chol, scale, rhs, step)
-    cyy = s02 * step[1]
+    cxx, cxy, cyy = _shift_covariance(chol, scale, s02, rhs, step)
     out[F_SIGMA_X] = math.sqrt(cxx)
     out[F_SIGMA_Y] = math.sqrt(cyy)
     if code == _NOT_CONVERGED:
         return code
-    if math.sqrt((p[0] - x0) ** 2 + (p[1] - y0) ** 2) > max_shift:
-        return _MOVED
-    # det / det0 within [min_det, 1 / min_det], written without divisions
-    det = p[2] * p[5] - p[3] * p[4]
-    ratio = det * det0  # same sign as det / det0
-    if not (det0 != 0.0 and ratio >= min_det * det0 * det0 and ratio * min_det <= det0 * det0 and p[7] > 0.0):
-        return _DEGENERATE
-    if not (rho >= min_rho):
-        return _LOW_CORRELATION
-    half = 0.5 * (cxx - cyy)
-    largest = 0.5 * (cxx + cyy) + math.sqrt(half * half + cxy * cxy)
-    if not (largest <= max_sigma * max_sigma):
-        return _IMPRECISE
-    return _ACCEPTED
+    return _verdict(p, x0, y0, det0, p[7], rho, cxx, cxy, cyy, max_shift, min_rho, max_sigma, min_det)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -806,36 +826,15 @@ def alsc_step(
         out[k] = init[k] + step[k]
     out[F_ITERATIONS] = 1.0
     s02 = mom[_SEE] / (npix - NPARAMS) if npix > NPARAMS else nan
-    for k in range(NPARAMS):
-        rhs[k] = 0.0
-    rhs[0] = 1.0
-    _solve(chol, scale, rhs, step)
-    cxx = s02 * step[0]
-    cxy = s02 * step[1]
-    rhs[0] = 0.0
-    rhs[1] = 1.0
-    _solve(chol, scale, rhs, step)
-    cyy = s02 * step[1]
+    cxx, cxy, cyy = _shift_covariance(chol, scale, s02, rhs, step)
     out[F_SIGMA_X] = math.sqrt(cxx)
     out[F_SIGMA_Y] = math.sqrt(cyy)
     sx = out[0] - init[0]
     sy = out[1] - init[1]
     if not (math.sqrt(sx * sx + sy * sy) < step_tol):
         return _NOT_CONVERGED
-    if math.sqrt(sx * sx + sy * sy) > max_shift:
-        return _MOVED
     det0 = init[2] * init[5] - init[3] * init[4]
-    det = out[2] * out[5] - out[3] * out[4]
-    ratio = det * det0
-    if not (det0 != 0.0 and ratio >= min_det * det0 * det0 and ratio * min_det <= det0 * det0 and out[7] > 0.0):
-        return _DEGENERATE
-    if not (rho >= min_rho):
-        return _LOW_CORRELATION
-    half = 0.5 * (cxx - cyy)
-    largest = 0.5 * (cxx + cyy) + math.sqrt(half * half + cxy * cxy)
-    if not (largest <= max_sigma * max_sigma):
-        return _IMPRECISE
-    return _ACCEPTED
+    return _verdict(out, init[0], init[1], det0, out[7], rho, cxx, cxy, cyy, max_shift, min_rho, max_sigma, min_det)
 
 
 @numba.njit(nogil=True, cache=True)

@@ -33,11 +33,6 @@ import numpy as np
 
 from .alsc import (
     _ACCEPTED,
-    _DEGENERATE,
-    _IMPRECISE,
-    _LOW_CORRELATION,
-    _MIN_RELAX,
-    _MOVED,
     _NMOM,
     _NOT_CONVERGED,
     _OUTSIDE,
@@ -57,7 +52,10 @@ from .alsc import (
     _factor,
     _moments,
     _normal_equations,
+    _relaxation,
+    _shift_covariance,
     _solve,
+    _verdict,
 )
 
 __all__ = ["alsc_point_bands", "band_scales"]
@@ -233,12 +231,7 @@ def alsc_point_bands(
         sx = step[0]
         sy = step[1]
         if updates > 0:
-            den = prev_x * prev_x + prev_y * prev_y
-            q = (sx * prev_x + sy * prev_y) / den if den > 0.0 else 0.0
-            if q < 1.0:
-                omega = min(1.0, max(_MIN_RELAX, omega / (1.0 - q)))
-            else:
-                omega = 1.0
+            omega = _relaxation(omega, sx, sy, prev_x, prev_y)
         for k in range(_NGEO):
             geo[k] += omega * step[k]
         for b in range(nb):
@@ -286,31 +279,10 @@ def alsc_point_bands(
         see += mom[b, _SEE]
     dof = nb * npix - _NGEO - 2 * nb
     s02 = see / dof if dof > 0 else nan
-    for k in range(_NGEO):
-        unit[k] = 0.0
-    unit[0] = 1.0
-    _solve(chol, scale, unit, step)
-    cxx = s02 * step[0]
-    cxy = s02 * step[1]
-    unit[0] = 0.0
-    unit[1] = 1.0
-    _solve(chol, scale, unit, step)
-    cyy = s02 * step[1]
+    cxx, cxy, cyy = _shift_covariance(chol, scale, s02, unit, step)
     out[F_SIGMA_X] = math.sqrt(cxx)
     out[F_SIGMA_Y] = math.sqrt(cyy)
     if code == _NOT_CONVERGED:
         return code
-    if math.sqrt((geo[0] - x0) ** 2 + (geo[1] - y0) ** 2) > max_shift:
-        return _MOVED
-    det = geo[2] * geo[5] - geo[3] * geo[4]
-    ratio = det * det0
-    positive = out[F_GAIN] > 0.0  # the contrast-weighted gain: the textured bands are not inverted
-    if not (det0 != 0.0 and ratio >= min_det * det0 * det0 and ratio * min_det <= det0 * det0 and positive):
-        return _DEGENERATE
-    if not (rho >= min_rho):
-        return _LOW_CORRELATION
-    half = 0.5 * (cxx - cyy)
-    largest = 0.5 * (cxx + cyy) + math.sqrt(half * half + cxy * cxy)
-    if not (largest <= max_sigma * max_sigma):
-        return _IMPRECISE
-    return _ACCEPTED
+    # the gain tested is the contrast-weighted one: the textured bands are not inverted
+    return _verdict(geo, x0, y0, det0, out[F_GAIN], rho, cxx, cxy, cyy, max_shift, min_rho, max_sigma, min_det)

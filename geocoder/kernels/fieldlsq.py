@@ -405,10 +405,7 @@ def field_lsq(
         cyw = np.full((h, w), np.nan)
     for it in range(0 if template else iterations):
         grow = iterations - 1 - it
-        reg = np.array([max(r0 - grow * radius_y, 0), min(r1 + grow * radius_y, h),
-                        max(c0 - grow * radius, 0), min(c1 + grow * radius, w)], dtype=np.int64)
-        warp = np.array([max(reg[0] - radius_y, 0), min(reg[1] + radius_y, h),
-                         max(reg[2] - radius, 0), min(reg[3] + radius, w)], dtype=np.int64)
+        reg, warp = round_windows(region, grow, radius, radius_y, (h, w))
         final = it == iterations - 1
         _warp(d, px, py, warp, iw, gxw, gyw)
         if final:
@@ -445,6 +442,16 @@ def _box_mean(q: np.ndarray, weight: np.ndarray, den: np.ndarray, rx: int, ry: i
     return np.where(den > 0.5 / (size[0] * size[1]), num / np.maximum(den, 1e-300), np.nan)
 
 
+def round_windows(region, grow: int, rx: int, ry: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels a round solves (``region`` grown by ``grow`` template half-sizes) and the
+    window it resamples (those plus one half-size), both clipped to ``shape``, int64[4]."""
+    (r0, r1, c0, c1), (h, w) = region, shape
+    reg = np.array([max(r0 - grow * ry, 0), min(r1 + grow * ry, h), max(c0 - grow * rx, 0), min(c1 + grow * rx, w)],
+                   dtype=np.int64)
+    warp = np.array([max(reg[0] - ry, 0), min(reg[1] + ry, h), max(reg[2] - rx, 0), min(reg[3] + rx, w)], dtype=np.int64)
+    return reg, warp
+
+
 def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill, iw, gxw, gyw, sol, stats, step):
     """The rounds of ``gradients="template"``: smooth the field over the template's box,
     resample the image there, and move every pixel to the smoothed field plus its template's shift.
@@ -456,17 +463,13 @@ def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill,
     pixels within ``2 (n - 1 - k)`` half-sizes of ``region`` (the box, then the template).
     """
     h, w = t.shape
-    r0, r1, c0, c1 = region
     tgy, tgx = np.gradient(t)
     cols = np.arange(w)[None, :]
     rows = np.arange(h)[:, None]
     den = _box_count(weight, rx, ry)  # the eligible pixels do not change between rounds
     for it in range(iterations):
         grow = 2 * (iterations - 1 - it)
-        reg = np.array([max(r0 - grow * ry, 0), min(r1 + grow * ry, h),
-                        max(c0 - grow * rx, 0), min(c1 + grow * rx, w)], dtype=np.int64)
-        warp = np.array([max(reg[0] - ry, 0), min(reg[1] + ry, h), max(reg[2] - rx, 0), min(reg[3] + rx, w)],
-                        dtype=np.int64)
+        reg, warp = round_windows(region, grow, rx, ry, (h, w))
         sx = cols + _box_mean(px - cols, weight, den, rx, ry)
         sy = rows + _box_mean(py - rows, weight, den, rx, ry)
         _warp(d, sx, sy, warp, iw, gxw, gyw)

@@ -42,6 +42,7 @@ from .fieldlsq import (
     _box_mean,
     _move,
     _noise_gain,
+    round_windows,
 )
 from .window_sums import (
     _NPLANES_SOLVE,
@@ -270,10 +271,7 @@ def field_lsq_bands(
     den = _box_count(weight, rx, ry)
     for it in range(iterations):
         grow = 2 * (iterations - 1 - it)
-        reg = np.array([max(r0 - grow * ry, 0), min(r1 + grow * ry, h),
-                        max(c0 - grow * rx, 0), min(c1 + grow * rx, w)], dtype=np.int64)
-        warp = np.array([max(reg[0] - ry, 0), min(reg[1] + ry, h), max(reg[2] - rx, 0), min(reg[3] + rx, w)],
-                        dtype=np.int64)
+        reg, warp = round_windows(region, grow, rx, ry, (h, w))
         sx = cols + _box_mean(px - cols, weight, den, rx, ry)
         sy = rows + _box_mean(py - rows, weight, den, rx, ry)
         for b in range(nb):
