@@ -93,6 +93,11 @@ from .window_sums import (
 
 __all__ = ["FieldLsqResult", "field_lsq", "template_solution_reference"]
 
+# Planes of ``sol`` (8, h, w) and ``stats`` (5, h, w), the per-pixel results of a round (see
+# :func:`_solve_window`): the move and the affine correction, the radiometry; sigma, rho, exit code.
+_DX, _DY, _B11, _B12, _B21, _B22, _GAIN, _OFFSET = range(8)
+_SIGMA_X, _SIGMA_Y, _COV_XY, _RHO, _CODE = range(5)
+
 _ACCEPTED = int(Exit.ACCEPTED)
 _OUTSIDE = int(Exit.OUTSIDE)
 _SINGULAR = int(Exit.SINGULAR)
@@ -150,7 +155,7 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
         rrel = float(rc - base_row)
         for c in range(c0, c1):
             j = c - a0
-            stats[4, rc, c] = _OUTSIDE
+            stats[_CODE, rc, c] = _OUTSIDE
             if rc - ry < 0 or rc + ry >= h or j - rx < 0 or j + rx >= ncols:
                 continue
             if not weight[rc, c]:
@@ -165,38 +170,38 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
                 _assemble(s, px[rc, c] - c - qx, py[rc, c] - rc - qy, nmat, rhs)
             ok, d6, d7, lxy = _ldl_solve8(nmat, rhs, p, final)
             if not ok:
-                stats[4, rc, c] = _SINGULAR
+                stats[_CODE, rc, c] = _SINGULAR
                 continue
             alpha = p[_P6]
             if not (alpha > 0.0):
-                stats[4, rc, c] = _SINGULAR
+                stats[_CODE, rc, c] = _SINGULAR
                 continue
             # the geometric unknowns: the template's move (template gradients) or alpha times the image's
             scale = 1.0 if template else alpha
-            sol[0, rc, c] = p[_P0] / scale
-            sol[1, rc, c] = p[_P1] / scale
-            sol[6, rc, c] = alpha
-            sol[7, rc, c] = p[_P7]
-            stats[4, rc, c] = _ACCEPTED
+            sol[_DX, rc, c] = p[_P0] / scale
+            sol[_DY, rc, c] = p[_P1] / scale
+            sol[_GAIN, rc, c] = alpha
+            sol[_OFFSET, rc, c] = p[_P7]
+            stats[_CODE, rc, c] = _ACCEPTED
             if not final:
                 continue
-            sol[2, rc, c] = p[_P2] / scale
-            sol[3, rc, c] = p[_P3] / scale
-            sol[4, rc, c] = p[_P4] / scale
-            sol[5, rc, c] = p[_P5] / scale
+            sol[_B11, rc, c] = p[_P2] / scale
+            sol[_B12, rc, c] = p[_P3] / scale
+            sol[_B21, rc, c] = p[_P4] / scale
+            sol[_B22, rc, c] = p[_P5] / scale
             ssr = s[S_TT]
             for k in range(8):
                 ssr -= p[k] * rhs[k]
             s02 = max(ssr, 0.0) / (cnt - 8.0) / (scale * scale)
             if template:
                 # the template's smooth gradients are the design: the shift block of its own inverse
-                stats[0, rc, c] = math.sqrt(max(s02 * (1.0 / d6 + lxy * lxy / d7), 0.0))
-                stats[1, rc, c] = math.sqrt(max(s02 / d7, 0.0))
-                stats[2, rc, c] = -s02 * lxy / d7
+                stats[_SIGMA_X, rc, c] = math.sqrt(max(s02 * (1.0 / d6 + lxy * lxy / d7), 0.0))
+                stats[_SIGMA_Y, rc, c] = math.sqrt(max(s02 / d7, 0.0))
+                stats[_COV_XY, rc, c] = -s02 * lxy / d7
                 st, stt, sti, si, sii = s[S_T], s[S_TT], s[S_TR], s[S_R], s[S_RR]
                 vt = stt - st * st / cnt
                 vi = sii - si * si / cnt
-                stats[3, rc, c] = (sti - st * si / cnt) / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
+                stats[_RHO, rc, c] = (sti - st * si / cnt) / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
                 continue
             # the precision from the normal matrix of the smooth gradients, as in ALSC: the
             # slopes of the interpolant carry twice the noise and would make sigma optimistic
@@ -204,19 +209,19 @@ def _solve_window(t, iw, gxw, gyw, cxw, cyw, px, py, qx, qy, weight, region, rx,
             _assemble(s2, 0.0, 0.0, nmat, rhs2)
             ok, d6, d7, lxy = _ldl_solve8(nmat, rhs2, e, False)
             if not ok:
-                stats[4, rc, c] = _SINGULAR
+                stats[_CODE, rc, c] = _SINGULAR
                 continue
             # shift block of N^-1 = (L22 D2 L22^T)^-1 for the last 2x2 blocks of the factor
             cxx = s02 * (1.0 / d6 + lxy * lxy / d7)
             cxy = -s02 * lxy / d7
             cyy = s02 / d7
-            stats[0, rc, c] = math.sqrt(max(cxx, 0.0))
-            stats[1, rc, c] = math.sqrt(max(cyy, 0.0))
-            stats[2, rc, c] = cxy
+            stats[_SIGMA_X, rc, c] = math.sqrt(max(cxx, 0.0))
+            stats[_SIGMA_Y, rc, c] = math.sqrt(max(cyy, 0.0))
+            stats[_COV_XY, rc, c] = cxy
             st, stt, sti, si, sii = s[S_T], s[S_TT], s[S_TR], s[S_R], s[S_RR]
             vt = stt - st * st / cnt
             vi = sii - si * si / cnt
-            stats[3, rc, c] = (sti - st * si / cnt) / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
+            stats[_RHO, rc, c] = (sti - st * si / cnt) / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
 
 
 @dataclass(frozen=True)
@@ -259,7 +264,7 @@ def _accept(sol, stats, px, py, x0, y0, step, eligible, region, tol, max_shift, 
             if not eligible[r, c]:
                 code[r, c] = _NOT_TRIED
                 continue
-            k = int(stats[4, r, c])
+            k = int(stats[_CODE, r, c])
             if k != _ACCEPTED:
                 code[r, c] = k
                 continue
@@ -271,16 +276,16 @@ def _accept(sol, stats, px, py, x0, y0, step, eligible, region, tol, max_shift, 
             if dx * dx + dy * dy > max_shift * max_shift:
                 code[r, c] = _MOVED
                 continue
-            det = (1.0 + sol[2, r, c]) * (1.0 + sol[5, r, c]) - sol[3, r, c] * sol[4, r, c]  # I + Jacobian of q
+            det = (1.0 + sol[_B11, r, c]) * (1.0 + sol[_B22, r, c]) - sol[_B12, r, c] * sol[_B21, r, c]  # I + Jacobian of q
             if not (det >= min_det and det * min_det <= 1.0):
                 code[r, c] = _DEGENERATE
                 continue
-            if not (stats[3, r, c] >= min_rho):
+            if not (stats[_RHO, r, c] >= min_rho):
                 code[r, c] = _LOW_CORRELATION
                 continue
-            sx = stats[0, r, c]
-            sy = stats[1, r, c]
-            cxy = stats[2, r, c]
+            sx = stats[_SIGMA_X, r, c]
+            sy = stats[_SIGMA_Y, r, c]
+            cxy = stats[_COV_XY, r, c]
             half = 0.5 * (sx * sx - sy * sy)
             largest = 0.5 * (sx * sx + sy * sy) + math.sqrt(half * half + cxy * cxy)
             if not (largest <= max_sigma * max_sigma):
@@ -294,9 +299,9 @@ def _update(sol, stats, px, py, step, region):  # pragma: no cover - compiled
     r0, r1, c0, c1 = region
     for r in range(r0, r1):
         for c in range(c0, c1):
-            if stats[4, r, c] == _ACCEPTED:
-                tx = sol[0, r, c]
-                ty = sol[1, r, c]
+            if stats[_CODE, r, c] == _ACCEPTED:
+                tx = sol[_DX, r, c]
+                ty = sol[_DY, r, c]
                 px[r, c] += tx
                 py[r, c] += ty
                 step[r, c] = math.sqrt(tx * tx + ty * ty)
@@ -397,8 +402,8 @@ def field_lsq(
     if template:
         _template_rounds(t, d, px, py, weight, region, radius, radius_y, iterations, min_fill, iw, gxw, gyw, sol, stats,
                          step)
-        stats[0:2] *= _noise_gain(radius, radius_y)
-        stats[2] *= _noise_gain(radius, radius_y) ** 2
+        stats[_SIGMA_X : _SIGMA_Y + 1] *= _noise_gain(radius, radius_y)
+        stats[_COV_XY] *= _noise_gain(radius, radius_y) ** 2
     else:
         cgy, cgx = np.gradient(d)  # the smooth gradients of the precision (NaN spreads to neighbours)
         cxw = np.full((h, w), np.nan)
@@ -420,10 +425,10 @@ def field_lsq(
     _accept(sol, stats, px, py, x0f, y0f, step, weight, np.array(region, dtype=np.int64), tol, max_shift, min_rho,
             max_sigma, min_det, code)
     sl = (slice(r0, r1), slice(c0, c1))
-    gain = sol[6][sl] * ts / ds  # base ~ gain dist + offset, as in ALSC
-    offset = tm + ts * sol[7][sl] - gain * dm
+    gain = sol[_GAIN][sl] * ts / ds  # base ~ gain dist + offset, as in ALSC
+    offset = tm + ts * sol[_OFFSET][sl] - gain * dm
     return FieldLsqResult(
-        px[sl], py[sl], sol[2:6, r0:r1, c0:c1], gain, offset, stats[0][sl], stats[1][sl], stats[3][sl], step[sl],
+        px[sl], py[sl], sol[_B11 : _B22 + 1, r0:r1, c0:c1], gain, offset, stats[_SIGMA_X][sl], stats[_SIGMA_Y][sl], stats[_RHO][sl], step[sl],
         code[sl],
     )
 
@@ -484,9 +489,9 @@ def _move(sol, stats, sx, sy, px, py, step, region):  # pragma: no cover - compi
     r0, r1, c0, c1 = region
     for r in range(r0, r1):
         for c in range(c0, c1):
-            if stats[4, r, c] == _ACCEPTED:
-                nx = sx[r, c] + sol[0, r, c]
-                ny = sy[r, c] + sol[1, r, c]
+            if stats[_CODE, r, c] == _ACCEPTED:
+                nx = sx[r, c] + sol[_DX, r, c]
+                ny = sy[r, c] + sol[_DY, r, c]
                 ex = nx - px[r, c]
                 ey = ny - py[r, c]
                 px[r, c] = nx

@@ -33,8 +33,21 @@ import numpy as np
 
 from .fieldlsq import (
     _ACCEPTED,
+    _B11,
+    _B12,
+    _B21,
+    _B22,
+    _CODE,
+    _COV_XY,
+    _DX,
+    _DY,
+    _GAIN,
     _NOT_TRIED,
+    _OFFSET,
     _OUTSIDE,
+    _RHO,
+    _SIGMA_X,
+    _SIGMA_Y,
     _SINGULAR,
     FieldLsqResult,
     _accept,
@@ -80,7 +93,7 @@ _GEO = (_P0, _P1, _P2, _P3, _P4, _P5)
 def _solve_window_bands(t, iw, tgx, tgy, px, py, weight, region, rx, ry, min_count, final, sol, stats):
     # pragma: no cover - compiled
     """:func:`geocoder.kernels.fieldlsq._solve_window` with the template's gradients, on ``n`` bands
-    (``t, iw, tgx, tgy`` of shape (n, h, w)); ``sol[6]`` gets the first band's gain."""
+    (``t, iw, tgx, tgy`` of shape (n, h, w)); ``sol[_GAIN]`` gets the first band's gain."""
     nb, h, w = t.shape
     r0, r1, c0, c1 = region
     a0 = max(c0 - rx, 0)
@@ -117,7 +130,7 @@ def _solve_window_bands(t, iw, tgx, tgy, px, py, weight, region, rx, ry, min_cou
         rrel = float(rc - base_row)
         for c in range(c0, c1):
             j = c - a0
-            stats[4, rc, c] = _OUTSIDE
+            stats[_CODE, rc, c] = _OUTSIDE
             if rc - ry < 0 or rc + ry >= h or j - rx < 0 or j + rx >= ncols:
                 continue
             if not weight[rc, c]:
@@ -155,13 +168,13 @@ def _solve_window_bands(t, iw, tgx, tgy, px, py, weight, region, rx, ry, min_cou
                     for gk in _GEO:
                         red[gi, gk] += n[gi, gk] - ca * n[gk, _RA] - cb * n[gk, _RB]
             if singular:
-                stats[4, rc, c] = _SINGULAR
+                stats[_CODE, rc, c] = _SINGULAR
                 continue
             red[_RA, _RA] = 1.0
             red[_RB, _RB] = 1.0
             ok, d6, d7, lxy = _ldl_solve8(red, rrhs, p, True)
             if not ok:
-                stats[4, rc, c] = _SINGULAR
+                stats[_CODE, rc, c] = _SINGULAR
                 continue
             # each band's radiometry from the shared geometry; the contrast-weighted gain must be
             # positive (a band without texture has no defined gain)
@@ -179,19 +192,19 @@ def _solve_window_bands(t, iw, tgx, tgy, px, py, weight, region, rx, ry, min_cou
                 rad[b, 1] = (r00 * eb - r01 * ea) / det
                 gain += (s[b, S_TT] - s[b, S_T] * s[b, S_T] / s[b, S_W]) * rad[b, 0]
             if not (gain > 0.0):
-                stats[4, rc, c] = _SINGULAR
+                stats[_CODE, rc, c] = _SINGULAR
                 continue
-            sol[0, rc, c] = p[_P0]
-            sol[1, rc, c] = p[_P1]
-            sol[6, rc, c] = rad[0, 0]
-            sol[7, rc, c] = rad[0, 1]
-            stats[4, rc, c] = _ACCEPTED
+            sol[_DX, rc, c] = p[_P0]
+            sol[_DY, rc, c] = p[_P1]
+            sol[_GAIN, rc, c] = rad[0, 0]
+            sol[_OFFSET, rc, c] = rad[0, 1]
+            stats[_CODE, rc, c] = _ACCEPTED
             if not final:
                 continue
-            sol[2, rc, c] = p[_P2]
-            sol[3, rc, c] = p[_P3]
-            sol[4, rc, c] = p[_P4]
-            sol[5, rc, c] = p[_P5]
+            sol[_B11, rc, c] = p[_P2]
+            sol[_B12, rc, c] = p[_P3]
+            sol[_B21, rc, c] = p[_P4]
+            sol[_B22, rc, c] = p[_P5]
             ssr = 0.0
             num = 0.0
             vt = 0.0
@@ -206,10 +219,10 @@ def _solve_window_bands(t, iw, tgx, tgy, px, py, weight, region, rx, ry, min_cou
                 vt += stt - st * st / cb
                 vi += sii - si * si / cb
             s02 = max(ssr, 0.0) / (cnt - 6.0 - 2.0 * nb)
-            stats[0, rc, c] = math.sqrt(max(s02 * (1.0 / d6 + lxy * lxy / d7), 0.0))
-            stats[1, rc, c] = math.sqrt(max(s02 / d7, 0.0))
-            stats[2, rc, c] = -s02 * lxy / d7
-            stats[3, rc, c] = num / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
+            stats[_SIGMA_X, rc, c] = math.sqrt(max(s02 * (1.0 / d6 + lxy * lxy / d7), 0.0))
+            stats[_SIGMA_Y, rc, c] = math.sqrt(max(s02 / d7, 0.0))
+            stats[_COV_XY, rc, c] = -s02 * lxy / d7
+            stats[_RHO, rc, c] = num / math.sqrt(vt * vi) if vt > 0.0 and vi > 0.0 else np.nan
 
 
 def field_lsq_bands(
@@ -278,8 +291,8 @@ def field_lsq_bands(
             _warp(d[b], sx, sy, warp, iw[b], gxw, gyw)
         _solve_window_bands(t, iw, tgx, tgy, sx, sy, weight, reg, rx, ry, min_fill, it == iterations - 1, sol, stats)
         _move(sol, stats, sx, sy, px, py, step, reg)
-    stats[0:2] *= _noise_gain(rx, ry)
-    stats[2] *= _noise_gain(rx, ry) ** 2
+    stats[_SIGMA_X : _SIGMA_Y + 1] *= _noise_gain(rx, ry)
+    stats[_COV_XY] *= _noise_gain(rx, ry) ** 2
     code = np.full((h, w), _NOT_TRIED, dtype=np.int8)
     x0f = np.asarray(x0, dtype=np.float64)
     y0f = np.asarray(y0, dtype=np.float64)
@@ -287,9 +300,9 @@ def field_lsq_bands(
             max_sigma, min_det, code)
     sl = (slice(r0, r1), slice(c0, c1))
     # base ~ gain dist + offset of the first band (in the grey values given), as in ALSC
-    gain = sol[6][sl]
-    offset = sol[7][sl]
+    gain = sol[_GAIN][sl]
+    offset = sol[_OFFSET][sl]
     return FieldLsqResult(
-        px[sl], py[sl], sol[2:6, r0:r1, c0:c1], gain, offset, stats[0][sl], stats[1][sl], stats[3][sl], step[sl],
+        px[sl], py[sl], sol[_B11 : _B22 + 1, r0:r1, c0:c1], gain, offset, stats[_SIGMA_X][sl], stats[_SIGMA_Y][sl], stats[_RHO][sl], step[sl],
         code[sl],
     )
