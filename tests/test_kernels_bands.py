@@ -47,7 +47,7 @@ def test_band_scales_give_unit_noise():
     smooth = gaussian_filter(rng.normal(size=(400, 400)), 6) * 400
     stack = np.stack([smooth + rng.normal(0, 2.0, smooth.shape), 3 * smooth + 50 + rng.normal(0, 0.5, smooth.shape)])
     scales = band_scales(stack)
-    # the noise of each band, not its contrast (the second band has 3x the contrast, a quarter of the noise)
+    # the noise of each band, not its contrast (band 2 has 3x the contrast of band 1 and a quarter of its noise)
     np.testing.assert_allclose(scales[:, 1], [2.0, 0.5], rtol=0.1)
 
 

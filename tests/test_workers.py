@@ -102,7 +102,7 @@ def _compute_counting(client: Client, tasks: dict, on_yield=None) -> tuple[dict,
     """Results, and at every yield how many tasks were submitted and not yet yielded.
 
     Counted from the client's futures minus the keys already yielded, so a release still on
-    its way to the scheduler does not count, and nothing depends on how fast tasks run.
+    its way to the scheduler does not count, and the count does not depend on when tasks finish.
     """
     results: dict = {}
     in_flight: list[int] = []
@@ -141,4 +141,4 @@ def test_the_window_follows_workers_that_join_during_a_stage():
         results, in_flight = _compute_counting(c, _squares(4 * IN_FLIGHT_PER_THREAD), on_yield=grow)
     assert results == {f"t{i}": i * i for i in range(4 * IN_FLIGHT_PER_THREAD)}
     assert in_flight[0] <= IN_FLIGHT_PER_THREAD, "a window per thread of the one worker"
-    assert max(in_flight) > IN_FLIGHT_PER_THREAD, "the second worker's thread gets tasks too"
+    assert max(in_flight) > IN_FLIGHT_PER_THREAD, "the joining worker's thread gets tasks too"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import dask
 import numpy as np
 
 from ..kernels.alsc import gradients
@@ -39,12 +40,13 @@ class Bands:
 
         index = tuple(int(b) - 1 for b in bands)
 
-        def scales(scene) -> np.ndarray:
+        def centre(scene):
             h, w = scene.sizes["y"], scene.sizes["x"]
             r0, c0 = max((h - 1024) // 2, 0), max((w - 1024) // 2, 0)
-            return band_scales(np.asarray(scene.data[list(index), r0 : r0 + 1024, c0 : c0 + 1024].compute()))
+            return scene.data[list(index), r0 : r0 + 1024, c0 : c0 + 1024]
 
-        return cls(index, scales(base), scales(dist))
+        crops = dask.compute(centre(base), centre(dist))  # one graph for both scenes
+        return cls(index, band_scales(np.asarray(crops[0])), band_scales(np.asarray(crops[1])))
 
     def pick(self, window: np.ndarray, scales: np.ndarray) -> np.ndarray:
         """The bands of a ``(band, y, x)`` window, scaled, float32 ``(n, y, x)``."""
