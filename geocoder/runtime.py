@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from contextlib import contextmanager
 from typing import Any, Iterator
 
@@ -290,6 +291,7 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     queue = as_completed(first, with_results=True)
     del first
     rest = iter(items[n:])
+    tasks_of = dict(items)
     try:
         for fut, value in queue:
             key, _ = running.pop(id(fut))
@@ -300,8 +302,36 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
                 queue.add(f)
             yield key, value
     finally:
-        for _, fut in running.values():
-            fut.cancel()
+        if running:  # an error, here or in the caller: nothing may keep writing after it
+            cancel_and_settle(client, [f for _, f in running.values()], [tasks_of[k] for k, _ in running.values()])
+
+
+def cancel_and_settle(client: Client, futures: list, collections: list, timeout: float = 10.0) -> None:
+    """Cancel ``futures`` and wait, at most ``timeout`` s, until no worker still runs a task of
+    ``collections`` (the dask collections they compute).
+
+    Cancelling releases a task on the scheduler but does not stop one that a worker is
+    running: a store task of a failed ingest finished its chunk after the client had removed
+    the job's directory, and recreated part of it. Waiting for the workers to let go first
+    keeps an error from leaving anything behind. Best effort: a client that cannot reach its
+    workers (the scheduler is lost) does not wait.
+    """
+    for fut in futures:
+        fut.cancel()
+    keys = {str(k) for c in collections for k in c.__dask_graph__().keys()}
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            running = client.run(_executing_keys, on_error="ignore")
+        except Exception:  # noqa: BLE001 - the scheduler or the workers are gone: nothing to wait for
+            return
+        if not any(k in keys for ks in running.values() if isinstance(ks, list) for k in ks):
+            return
+        time.sleep(0.05)
+
+
+def _executing_keys(dask_worker) -> list[str]:
+    return [str(ts.key) for ts in dask_worker.state.executing]
 
 
 def _single_task(collection: Any) -> bool:

@@ -27,6 +27,7 @@ from .conventions import georeference, pixel_grid
 from .errors import InputError, as_environment_failure
 from .geometry import pixel_to_world, world_to_pixel  # noqa: F401  (part of this module's API)
 from .outputs import check_output, commit_output, product_attrs
+from .runtime import cancel_and_settle
 from .tiles import Window
 
 IMAGE_VAR = "image"
@@ -314,6 +315,7 @@ def _write_stores(scenes: list[xr.DataArray], paths: list[str], outs: list[str],
     else:
         results = [(None, d) for d in delayed]
     values = []
+    done = False
     try:
         for (future, task), scene, out in zip(results, scenes, outs):
             try:
@@ -326,10 +328,10 @@ def _write_stores(scenes: list[xr.DataArray], paths: list[str], outs: list[str],
                     raise InputError(scene.attrs.get("source", "input"),
                                      f"cannot be read, the file is truncated or damaged ({_first_line(exc)})") from exc
                 raise
+        done = True
     finally:
-        for future, _ in results:
-            if future is not None:
-                future.cancel()
+        if client is not None and not done:  # the other stores' tasks may still be writing
+            cancel_and_settle(client, [f for f, _ in results], delayed)
     return values
 
 

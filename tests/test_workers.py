@@ -142,3 +142,27 @@ def test_the_window_follows_workers_that_join_during_a_stage():
     assert results == {f"t{i}": i * i for i in range(4 * IN_FLIGHT_PER_THREAD)}
     assert in_flight[0] <= IN_FLIGHT_PER_THREAD, "a window per thread of the one worker"
     assert max(in_flight) > IN_FLIGHT_PER_THREAD, "the joining worker's thread gets tasks too"
+
+
+def _write_later(path: str) -> int:
+    time.sleep(1.0)
+    Path(path).write_text("written after the other task failed")
+    return 1
+
+
+def _fail() -> int:
+    raise ValueError("boom")
+
+
+def test_an_error_leaves_no_task_writing_behind_it(client, tmp_path):
+    """The error reaches the caller only once the tasks still running have let go (or were
+    never started): nothing appears on disk after it, when the caller has cleaned up."""
+    name = tmp_path.name
+    tasks = {"fail": dask.delayed(_fail, pure=False)(dask_key_name=f"fail-{name}"),
+             "late": dask.delayed(_write_later, pure=False)(str(tmp_path / "late"), dask_key_name=f"late-{name}")}
+    with client.as_current(), pytest.raises(ValueError, match="boom"):
+        for _ in compute_as_completed(tasks):
+            pass
+    after_error = sorted(os.listdir(tmp_path))
+    time.sleep(1.5)  # longer than the slow task: if it were still running, it would write now
+    assert sorted(os.listdir(tmp_path)) == after_error
