@@ -199,7 +199,8 @@ class LineFit:
         Variance of the residuals about the fit beyond the matches' own noise (px^2): how far
         the line departs from the fit.
     spread_x, spread_y : ndarray (H,)
-        Variance of the residuals about the fit (px^2).
+        Variance of the residuals about the fit (px^2), over the row's independent matches
+        (one per ``correlation`` px, of which the fit takes one per coefficient).
     lev : ndarray (2, H, 5)
         Coefficients of ``1, u, ..., u^4`` of the variance of the fit at ``u`` (px^2), in x and
         y (at most the spread: a fit is never less certain than one match).
@@ -264,7 +265,10 @@ def shrink_block(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray,
         quartic = sum(t[:, 11 + 5 * a + k : 12 + 5 * a + k] * powers[k] for k in range(5))
         v_fit = np.minimum(quartic, t[:, 9 + a : 10 + a])
         value = p + fit + keep * (d64 - p - fit)
-        sigma = np.sqrt(keep * s2 + (1.0 - keep) ** 2 * v_fit)
+        # value - truth = keep (the match's noise) + (1 - keep) (the fit's error - the line's
+        # departure from its fit); never more than the match's own sigma: where the fit is that
+        # uncertain, its line holds too few independent matches to say how far to trust it
+        sigma = np.minimum(np.sqrt(keep * keep * s2 + (1.0 - keep) ** 2 * (v_fit + tau2)), s64)
         sel = matched & (t[:, :1] > 0) & np.isfinite(s64) & np.isfinite(d64)
         out += [np.where(sel, value, d64).astype(np.float32), np.where(sel, sigma, s64).astype(np.float32)]
     return out[0], out[2], out[1], out[3]
@@ -289,7 +293,7 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
     order : int
         0, 1 or 2.
     min_count : int
-        Fewest matches a row needs for a fit.
+        Fewest matches a row needs for a fit (and at least ``(order + 2) * correlation``).
     correlation : int
         Template length along the line (px): neighbouring matches share most of their template.
 
@@ -305,7 +309,9 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
     for i in range(p):
         for j in range(p):
             N[:, i, j] = s[i + j]
-    ok = n >= max(min_count, p + 1)
+    # neighbouring matches share their errors over ``correlation`` px: a row holds about
+    # n / correlation independent ones, the fit takes p of them and needs one more
+    ok = n >= max(min_count, (p + 1) * correlation)
     # rows whose normal matrix is too ill-conditioned to trust (matches bunched in one spot)
     cond = np.full(rows, np.inf)
     if ok.any():
@@ -322,12 +328,16 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
         coef = np.einsum("rij,rj->ri", inv, rhs)
         # residual sum of squares of a least-squares fit: sum(r^2) - coef . rhs
         ss = np.maximum(s[rr, ok] - np.einsum("ri,ri->r", coef, rhs), 0.0)
-        spread = ss / (n[ok] - p)
         noise = s[v, ok] / n[ok]
+        # how far the matches are shrunk: as tuned on issue 14's cases, the residuals' variance
+        # counted as if the matches were independent (smaller than the spread below)
+        var[f"tau2_{name}"][ok] = np.maximum(ss / (n[ok] - p) - noise, 0.0)
+        # the fit's own variance: the residuals' variance over n / correlation - p degrees of
+        # freedom (counted over n - p, the fit's sigma came out 1.2-1.4x optimistic, issue 14)
+        spread = ss / (n[ok] - p * correlation)
         out[f"c{name}"][ok, :p] = coef
         post[a] = (spread * correlation)[:, None, None] * inv
         var[f"spread_{name}"][ok] = spread
-        var[f"tau2_{name}"][ok] = np.maximum(spread - noise, 0.0)
     # the fit's variance a(u)^T P a(u), a = (1, u, u^2)[:p], as a quartic in u; x and y apart
     lev = np.zeros((2, rows, 5))
     for i in range(p):
