@@ -89,8 +89,7 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
         The global polynomial's ``dx, dy`` on the same grid.
     options : LineOptions
     correlation : int
-        Template length along the line (px): a row's fit needs ``fit_order + 2`` times as many
-        matches (:func:`~geocoder.quality.line_fits.line_fits`).
+        Template length along the line (px): a row's fit needs twice as many matches.
     sums : ndarray, shape (n, H, tile columns), optional
         The tiles' :func:`tile_sums` side by side, if computed already (by the stored
         post-filter pass, :func:`geocoder.pipeline.dense.dense_field`); else one pass over
@@ -115,7 +114,7 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     if options.fit_order < 0:
         return rows, None
     fits = line_fits(sums[len(SUMS):k].sum(axis=-1), order=options.fit_order,
-                     min_count=options.min_count, correlation=correlation)
+                     min_count=max(options.min_count, 2 * correlation), correlation=correlation)
     return rows, fits
 
 

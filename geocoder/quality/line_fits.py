@@ -293,7 +293,7 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
     order : int
         0, 1 or 2.
     min_count : int
-        Fewest matches a row needs for a fit (and at least ``(order + 2) * correlation``).
+        Fewest matches a row needs for a fit.
     correlation : int
         Template length along the line (px): neighbouring matches share most of their template.
 
@@ -309,9 +309,7 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
     for i in range(p):
         for j in range(p):
             N[:, i, j] = s[i + j]
-    # neighbouring matches share their errors over ``correlation`` px: a row holds about
-    # n / correlation independent ones, the fit takes p of them and needs one more
-    ok = n >= max(min_count, (p + 1) * correlation)
+    ok = n >= max(min_count, p + 1)
     # rows whose normal matrix is too ill-conditioned to trust (matches bunched in one spot)
     cond = np.full(rows, np.inf)
     if ok.any():
@@ -332,9 +330,12 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
         # how far the matches are shrunk: as tuned on issue 14's cases, the residuals' variance
         # counted as if the matches were independent (smaller than the spread below)
         var[f"tau2_{name}"][ok] = np.maximum(ss / (n[ok] - p) - noise, 0.0)
-        # the fit's own variance: the residuals' variance over n / correlation - p degrees of
-        # freedom (counted over n - p, the fit's sigma came out 1.2-1.4x optimistic, issue 14)
-        spread = ss / (n[ok] - p * correlation)
+        # the fit's own variance: neighbouring matches share their errors over ``correlation``
+        # px, so a row holds about n / correlation independent ones and the fit takes p of them:
+        # the residuals' variance over the rest (counted over n - p, the fit's sigma came out
+        # 1.2-1.4x optimistic, issue 14); with less than one left, the matches' own variance
+        dof = n[ok] - p * correlation
+        spread = np.where(dof >= correlation, ss / np.maximum(dof, 1.0), noise)
         out[f"c{name}"][ok, :p] = coef
         post[a] = (spread * correlation)[:, None, None] * inv
         var[f"spread_{name}"][ok] = spread
