@@ -252,9 +252,10 @@ def test_matches_on_a_line_that_follows_its_fit_take_the_fit_with_an_honest_sigm
     assert rmse < 0.2 * sigma
     # tau2 is zero but for the sampling error of a variance: sigma^2 sqrt(2 / n) per line
     assert np.all(fits.ok) and np.all(fits.tau2_x < 3 * sigma**2 * np.sqrt(2 / 600))
-    # never optimistic; pessimistic here (~0.5) because a line's tau2 of pure sampling noise
-    # keeps k sigma^2 in the posterior variance (on the registered cases of issue 14: 0.97-1.34)
-    assert 0.4 <= rmse / np.sqrt(np.mean(sx**2)) <= 1.25
+    # never optimistic; pessimistic here (0.40) because a line's tau2 of pure sampling noise
+    # is counted as a possible error of the kept share of its matches (on the registered cases
+    # of issue 14: 0.78-1.12)
+    assert 0.35 <= rmse / np.sqrt(np.mean(sx**2)) <= 1.25
     np.testing.assert_allclose(-dy, dx, atol=1e-5)  # y handled like x
 
 
@@ -281,15 +282,49 @@ def test_matches_with_errors_shared_along_the_line_get_an_honest_sigma(client, t
     assert (sx <= sigma * (1 + 1e-6)).all()  # never less certain than the match itself
 
 
+def test_slopes_common_to_all_lines_come_back_on_their_trend():
+    # 200 lines, each with its own shift (turbulence) but a slope and a curvature that follow a
+    # smooth trend across the lines (the global polynomial's error): the shrunk slopes and
+    # curvatures are several times more precise than each line's own, the shifts stay the lines'
+    # own, and the posterior sigma says how precise they are
+    from geocoder.quality.line_fits import shrink_coefficients
+
+    rng = np.random.default_rng(11)
+    n = 200
+    v = np.linspace(-1, 1, n)
+    true = np.stack([rng.normal(0, 1, n), 0.3 + 0.1 * v, np.full(n, -0.2)], axis=1)
+    sd = np.array([0.01, 0.02, 0.03])
+    cov = np.broadcast_to(np.diag(sd**2), (n, 3, 3)).copy()
+    coef = true + sd * rng.standard_normal((n, 3))
+    shrunk, post = shrink_coefficients(coef, cov, v)
+    np.testing.assert_allclose(shrunk[:, 0], coef[:, 0], atol=1e-6)  # the shift is the line's own
+    own, pooled = np.sqrt(np.mean((coef - true) ** 2, axis=0)), np.sqrt(np.mean((shrunk - true) ** 2, axis=0))
+    print("own", own, "pooled", pooled)
+    assert (pooled[1:] < 0.3 * own[1:]).all()
+    # never optimistic; pessimistic here (measured 0.52, 0.37) because the lines' spread about the
+    # trend, zero in truth, is estimated from their noise and counted as such
+    ratio = pooled[1:] / np.sqrt(np.mean(np.diagonal(post, axis1=1, axis2=2)[:, 1:], axis=0))
+    assert ((0.3 <= ratio) & (ratio <= 1.25)).all(), ratio
+    # slopes that do differ from line to line (yaw) beyond their noise are kept
+    true[:, 1] = rng.normal(0, 0.5, n)
+    coef = true + sd * rng.standard_normal((n, 3))
+    shrunk, _ = shrink_coefficients(coef, cov, v)
+    assert np.sqrt(np.mean((shrunk[:, 1] - coef[:, 1]) ** 2)) < 0.1 * sd[1]
+
+
 def test_matches_on_a_line_that_departs_from_its_fit_stand(client, tmp_path):
     # relief along the line: 0.5 px waves of 40 px, far beyond the matches' noise, which no
-    # quadratic follows: the matches keep (nearly) all of their own value and sigma
+    # quadratic follows: the matches keep (nearly) all of their own value. Their sigma counts
+    # the line's departure: a line that departs from its fit may do so by its matches' own
+    # error (relief inside a template: on the real pair D of bench_error_analysis the matches
+    # were 3-4x off their sigma until it did), so it lies between the match's and that
     sigma = 0.05
     truth, noisy = _fit_field(20, 600, lambda u, r: 0.5 * np.sin(u * 600 / 40.0 * np.pi) + 0.1 * r, sigma)
-    (dx, sx, _), _ = _shrunk(noisy, sigma, 2, (20, 300), client, tmp_path)
+    (dx, sx, _), fits = _shrunk(noisy, sigma, 2, (20, 300), client, tmp_path)
     assert np.max(np.abs(dx - noisy)) < 0.05 * 0.5  # k = tau^2 / (tau^2 + sigma^2) ~ 0.98
     assert np.sqrt(np.mean((dx - truth) ** 2)) <= 1.02 * sigma
-    np.testing.assert_allclose(sx, sigma, rtol=0.02)
+    assert (sx >= 0.98 * sigma).all()
+    assert (sx <= 1.001 * np.sqrt(sigma**2 + fits.tau2_x[:, None])).all()
 
 
 def test_line_fits_do_not_depend_on_the_tiling(client, tmp_path):
