@@ -194,7 +194,8 @@ class LineFit:
     Attributes
     ----------
     cx, cy : ndarray (H, 3)
-        Coefficients of ``1, u, u^2`` (zero beyond the order) in x and y.
+        Coefficients of ``1, u, u^2`` (zero beyond the order) in x and y: the line's own shift,
+        its slope and curvature shrunk toward the lines' trend (:func:`shrink_coefficients`).
     tau2_x, tau2_y : ndarray (H,)
         Variance of the residuals about the fit beyond the matches' own noise (px^2): how far
         the line departs from the fit.
