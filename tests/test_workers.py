@@ -144,25 +144,32 @@ def test_the_window_follows_workers_that_join_during_a_stage():
     assert max(in_flight) > IN_FLIGHT_PER_THREAD, "the joining worker's thread gets tasks too"
 
 
-def _write_later(path: str) -> int:
-    time.sleep(1.0)
-    Path(path).write_text("written after the other task failed")
+def _write_after_work(path: str, started: str) -> int:
+    from distributed import Event
+
+    Event(started).set()
+    time.sleep(1.0)  # the task's work, still going on when the other task fails
+    Path(path).write_text("written by a task that was running when the other failed")
     return 1
 
 
-def _fail() -> int:
+def _fail_once_started(started: str) -> int:
+    from distributed import Event
+
+    Event(started).wait(timeout=60)
     raise ValueError("boom")
 
 
 def test_an_error_leaves_no_task_writing_behind_it(client, tmp_path):
-    """The error reaches the caller only once the tasks still running have let go (or were
-    never started): nothing appears on disk after it, when the caller has cleaned up."""
+    """The error reaches the caller only once the tasks still running have let go: the task
+    that was running when the other failed has written its file by then, so nothing appears on
+    disk after the caller has cleaned up."""
     name = tmp_path.name
-    tasks = {"fail": dask.delayed(_fail, pure=False)(dask_key_name=f"fail-{name}"),
-             "late": dask.delayed(_write_later, pure=False)(str(tmp_path / "late"), dask_key_name=f"late-{name}")}
+    started = f"started-{name}"
+    tasks = {"fail": dask.delayed(_fail_once_started, pure=False)(started, dask_key_name=f"fail-{name}"),
+             "late": dask.delayed(_write_after_work, pure=False)(str(tmp_path / "late"), started,
+                                                                 dask_key_name=f"late-{name}")}
     with client.as_current(), pytest.raises(ValueError, match="boom"):
         for _ in compute_as_completed(tasks):
             pass
-    after_error = sorted(os.listdir(tmp_path))
-    time.sleep(1.5)  # longer than the slow task: if it were still running, it would write now
-    assert sorted(os.listdir(tmp_path)) == after_error
+    assert (tmp_path / "late").exists(), "the error came back while a task was still running"
