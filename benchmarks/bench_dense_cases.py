@@ -224,6 +224,10 @@ def main() -> None:
         elif re.fullmatch(r"mi\d+", mode):  # "miN": at most N Gauss-Newton updates per lattice match
             alsc = DenseOptions().alsc
             modes[mode] = RegisterOptions(matching=DenseOptions(alsc=replace(alsc, max_iter=int(mode[2:]))))
+        elif re.fullmatch(r"ext\d+", mode):  # "extN": the every-pixel pass starts N px past a line's last lattice match
+            modes[mode] = RegisterOptions(matching=DenseOptions(densify_extend=int(mode[3:])))
+        elif re.fullmatch(r"gap\d+", mode):  # "gapN": ... and across gaps of the lattice up to N px
+            modes[mode] = RegisterOptions(matching=DenseOptions(densify_gap=int(mode[3:])))
         elif re.fullmatch(r"tries\d+", mode):  # "triesN": attempts per lattice pixel
             modes[mode] = RegisterOptions(matching=DenseOptions(max_tries=int(mode[5:])))
     table, holes = [], []

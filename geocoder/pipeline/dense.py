@@ -99,7 +99,13 @@ class DenseOptions:
         linearised about its own centre; biased by the noise of the slopes on smooth texture).
     densify_tol : largest last move (px) of a pixel accepted by ``"field"``.
     densify_gap, densify_extend : how far (px) ``"field"`` interpolates the lattice along a
-        scan line between two matches, and extends it past the last one, for the starts.
+        scan line between two matches, and extends it past the last one, for the starts. A
+        gap of 512 px against 128 raised the coverage of the textured overlap (S2 1024^2 97.7
+        -> 98.6 %, strong S2 2048^2 91.6 -> 95.2 %, Landsat 76.0 -> 78.9 %) at the same
+        matched RMSE: textured patches beyond an untextured stretch of a line are started
+        (every start is verified by the match); longer gaps added nothing more. Extending
+        further than 32 px matched the rims of untextured areas worse (strong S2: matched RMSE
+        0.052 -> 0.062 at 128 px).
     neighbours : 4 or 8.
     max_tries : attempts per pixel from different neighbours within one task.
     max_rounds : limit of halo-exchange rounds.
@@ -116,7 +122,7 @@ class DenseOptions:
     densify_iterations: int = 2
     densify_gradients: str = "template"
     densify_tol: float = 0.1
-    densify_gap: int = 128
+    densify_gap: int = 512
     densify_extend: int = 32
     neighbours: int = 4
     max_tries: int = 2
