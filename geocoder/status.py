@@ -17,7 +17,10 @@ class Status(IntEnum):
     MATCHED : int
         1: dense least-squares match.
     FILLED : int
-        2: filled by interpolation along the scan line.
+        2: a short gap of a scan line between matches (a rejected match, no texture), filled
+        by interpolation along the line (:mod:`geocoder.quality.postfilter`); in a dense
+        field with line fits, then set on its line's fit
+        (:func:`geocoder.quality.line_fits.shrink_block`).
     BLUNDER : int
         3: match rejected as a blunder by the post-filter.
     NO_TEXTURE : int

@@ -327,6 +327,32 @@ def test_matches_on_a_line_that_departs_from_its_fit_stand(client, tmp_path):
     assert (sx <= 1.001 * np.sqrt(sigma**2 + fits.tau2_x[:, None])).all()
 
 
+def test_filled_pixels_take_their_lines_fit_with_its_sigma(client, tmp_path):
+    # the post-filter fills a short gap from the raw matches beside a rejected one, which err
+    # most there (here 0.3 px off, no sigma): the pixel takes its line's fit instead and the
+    # fit's sigma with the line's departure; its status stays FILLED
+    from geocoder.quality.line_fits import line_coordinate
+    from geocoder.status import Status
+
+    sigma = 0.05
+    truth, noisy = _fit_field(20, 600, lambda u, r: np.sin(r / 3.0) + 0.3 * u - 0.2 * u * u, sigma)
+    status = np.full(noisy.shape, Status.MATCHED, np.uint8)
+    sig = np.full(noisy.shape, sigma, np.float32)
+    gap = (slice(None), slice(200, 206))
+    status[gap], sig[gap] = Status.FILLED, np.nan
+    noisy[gap] = truth[gap] + 0.3
+    out, fits = _line_field(tmp_path, noisy, -noisy, status, sig, sig, (20, 300), LineOptions(fit_order=2), rows=True,
+                            fits_from_rows=True)
+    filled = status == Status.FILLED
+    assert (out["status"][filled] == Status.FILLED).all()
+    err = (out["dx"] - truth)[filled]
+    assert np.sqrt(np.mean(err**2)) < 0.3 * sigma
+    u = line_coordinate(np.arange(200, 206), 600)[None, :]
+    v_fit = np.minimum(sum(fits.lev[0][:, k : k + 1] * u**k for k in range(5)), fits.spread_x[:, None])
+    np.testing.assert_allclose(out["sigma_x"][gap], np.sqrt(v_fit + fits.tau2_x[:, None]), rtol=1e-4)
+    np.testing.assert_allclose(out["dy"][filled], -out["dx"][filled], atol=1e-5)
+
+
 def test_line_fits_do_not_depend_on_the_tiling(client, tmp_path):
     sigma = 0.08
     _, noisy = _fit_field(32, 300, lambda u, r: 0.1 * r + 0.2 * u, sigma, seed=3)

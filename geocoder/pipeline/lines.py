@@ -131,7 +131,8 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
     corrected row estimated (across a hole of at most ``options.max_hole`` px from the
     residuals at its ends, else along the whole row from the smooth part along the lines plus
     the row's shift, :func:`_estimates`; status ``ESTIMATED`` with its sigma), every match
-    shrunk toward its line's fit (``fits``, None: not), and with ``options.smooth`` the
+    shrunk toward its line's fit and every filled pixel set on it (``fits``, None: not;
+    :func:`~geocoder.quality.line_fits.shrink_block`), and with ``options.smooth`` the
     matches smoothed along their lines. Pixels without a usable match
     start from the polynomial ``mapping``.
 
@@ -203,7 +204,8 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     dx, dy, sx, sy, status = _estimates(dx, dy, px, py, status, sx, sy, holes[:, :, sa:sb], rows, part)
     if shrink:
         u = line_coordinate(cols, width)
-        dx, dy, sx, sy = shrink_block(dx, dy, px, py, status == Status.MATCHED, sx, sy, u, t[:, len(ROW_TABLE):])
+        dx, dy, sx, sy = shrink_block(dx, dy, px, py, status == Status.MATCHED, sx, sy, u, t[:, len(ROW_TABLE):],
+                                      filled=status == Status.FILLED)
     if smooth:
         stack = np.stack([dx, dy, px, py, status.astype(np.float32), sx, sy]).astype(np.float32)
         dx, dy, sx, sy = _smooth_block(stack, window=options.smooth, correlation=correlation)
