@@ -5,7 +5,8 @@ but only every k-th column. Along a line the field is smooth (the turbulence of 
 shared by the whole line), so the pixels between two matched lattice columns start from the
 linear interpolation of their positions, also across untextured stretches where the lattice
 failed (up to ``max_gap``); beyond the last matched lattice column of a run the start follows
-that match's affine (up to ``max_extend``). Every started pixel is then
+that match's affine (:data:`MIN_EXTEND` px), or where the run is long enough, its last chord
+as far as the run's curvature allows (up to ``max_extend``). Every started pixel is then
 matched by :func:`geocoder.kernels.fieldlsq.field_lsq`: the normal equations of all
 templates at once from window sums on the distorted image resampled at the start field,
 with ALSC's acceptance tests and its covariance. A pixel with no matched lattice column
@@ -26,11 +27,68 @@ from ..kernels.fieldlsq_bands import field_lsq_bands
 __all__ = ["lattice_start", "densify_window"]
 
 
+#: Past a line's first and last match the start follows the match's affine for this many px;
+#: beyond, where the run of matches is long enough to tell the line's slope and curvature
+#: (three matches :data:`HOLD_SPAN` px apart), along the slope of the last chord as far as the
+#: curvature keeps it within :data:`HOLD_TOL` px (at most ``max_extend``).
+MIN_EXTEND = 32
+HOLD_SPAN = 64
+HOLD_TOL = 0.25
+
+
+@numba.njit(nogil=True, cache=True)
+def _chord_reach(x, y, idx, i, j, j2, max_extend):  # pragma: no cover - compiled
+    """Slopes (x, y) of the chord from match ``j`` to the end match ``i`` and how far (px) past
+    ``i`` they stay within HOLD_TOL of a line whose curvature is that of the chords j2-j, j-i."""
+    ci, cj, c2 = idx[i], idx[j], idx[j2]
+    sx, sy = (x[ci] - x[cj]) / (ci - cj), (y[ci] - y[cj]) / (ci - cj)
+    mid = 0.5 * (ci - c2)  # between the two chords' midpoints
+    curv = max(abs(sx - (x[cj] - x[c2]) / (cj - c2)), abs(sy - (y[cj] - y[c2]) / (cj - c2))) / mid
+    d = abs(ci - cj)
+    if curv * (max_extend * max_extend + max_extend * d) <= 2.0 * HOLD_TOL:
+        return sx, sy, max_extend
+    # 0.5 curv (L^2 + L d) = HOLD_TOL: how far the chord's slope carries
+    reach = 0.5 * (np.sqrt(d * d + 8.0 * HOLD_TOL / curv) - d)
+    return sx, sy, int(reach)
+
+
 @numba.njit(nogil=True, cache=True)
 def _lattice_start(x, y, a11, a21, matched, max_gap, max_extend, x0, y0, started):  # pragma: no cover - compiled
     h, w = matched.shape
     nxt = np.empty(w, dtype=np.int64)  # next matched column at or after each column, per line
+    idx = np.empty(w, dtype=np.int64)  # the line's matched columns
+    # per matched column: the slopes its extension follows (right, left) and how far
+    ext = np.empty((2, 3, w))
     for r in range(h):
+        k = 0
+        for c in range(w):
+            if matched[r, c]:
+                idx[k] = c
+                k += 1
+        for i in range(k):
+            c = idx[i]
+            for side in range(2):  # 0: extended to the right (toward larger columns), 1: to the left
+                ext[side, 0, c] = a11[r, c] if side == 0 else -a11[r, c]
+                ext[side, 1, c] = a21[r, c] if side == 0 else -a21[r, c]
+                ext[side, 2, c] = min(MIN_EXTEND, max_extend)
+                step = -1 if side == 0 else 1  # toward the inner matches of the run
+                j = -1
+                j2 = -1
+                m = i
+                while 0 <= m + step < k and abs(idx[m + step] - idx[m]) <= max_gap:
+                    m += step
+                    if j < 0 and abs(idx[m] - c) >= HOLD_SPAN:
+                        j = m
+                    elif j >= 0 and abs(idx[m] - idx[j]) >= HOLD_SPAN:
+                        j2 = m
+                        break
+                if j2 >= 0:
+                    sx, sy, reach = _chord_reach(x[r], y[r], idx, i, j, j2, max_extend)
+                    if reach > ext[side, 2, c]:
+                        sgn = 1.0 if side == 0 else -1.0
+                        ext[side, 0, c] = sgn * sx
+                        ext[side, 1, c] = sgn * sy
+                        ext[side, 2, c] = reach
         left = -1
         following = -1
         for c in range(w - 1, -1, -1):
@@ -50,13 +108,13 @@ def _lattice_start(x, y, a11, a21, matched, max_gap, max_extend, x0, y0, started
                     x0[r, c] = (1.0 - f) * x[r, left] + f * x[r, right]
                     y0[r, c] = (1.0 - f) * y[r, left] + f * y[r, right]
                 started[r, c] = True
-            elif left >= 0 and c - left <= max_extend:
-                x0[r, c] = x[r, left] + a11[r, left] * (c - left)
-                y0[r, c] = y[r, left] + a21[r, left] * (c - left)
+            elif left >= 0 and c - left <= ext[0, 2, left]:
+                x0[r, c] = x[r, left] + ext[0, 0, left] * (c - left)
+                y0[r, c] = y[r, left] + ext[0, 1, left] * (c - left)
                 started[r, c] = True
-            elif right >= 0 and right - c <= max_extend:
-                x0[r, c] = x[r, right] - a11[r, right] * (right - c)
-                y0[r, c] = y[r, right] - a21[r, right] * (right - c)
+            elif right >= 0 and right - c <= ext[1, 2, right]:
+                x0[r, c] = x[r, right] + ext[1, 0, right] * (right - c)
+                y0[r, c] = y[r, right] + ext[1, 1, right] * (right - c)
                 started[r, c] = True
 
 
@@ -75,7 +133,10 @@ def lattice_start(x: np.ndarray, y: np.ndarray, a11: np.ndarray, a21: np.ndarray
         Two matched pixels of a line at most this far apart (px) are interpolated: the
         field along a scan line is smooth, and every start is verified by the match.
     max_extend : int
-        Beyond the last matched pixel of a line, starts follow its affine this far (px).
+        Beyond the last matched pixel of a line, starts follow its affine :data:`MIN_EXTEND`
+        px (at most ``max_extend``); where the run of matches holds three at least
+        :data:`HOLD_SPAN` px apart, the slope of its last chord as far as the curvature of
+        the last two chords keeps that within :data:`HOLD_TOL` px, at most ``max_extend``.
 
     Returns
     -------

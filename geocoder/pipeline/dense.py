@@ -99,13 +99,18 @@ class DenseOptions:
         linearised about its own centre; biased by the noise of the slopes on smooth texture).
     densify_tol : largest last move (px) of a pixel accepted by ``"field"``.
     densify_gap, densify_extend : how far (px) ``"field"`` interpolates the lattice along a
-        scan line between two matches, and extends it past the last one, for the starts. A
-        gap of 512 px against 128 raised the coverage of the textured overlap (S2 1024^2 97.7
-        -> 98.6 %, strong S2 2048^2 91.6 -> 95.2 %, Landsat 76.0 -> 78.9 %) at the same
-        matched RMSE: textured patches beyond an untextured stretch of a line are started
-        (every start is verified by the match); longer gaps added nothing more. Extending
-        further than 32 px matched the rims of untextured areas worse (strong S2: matched RMSE
-        0.052 -> 0.062 at 128 px).
+        scan line between two matches, and carries it past a line's first and last match, for
+        the starts (:func:`geocoder.match.densify.lattice_start`; every start is verified by
+        the match). Past the ends: the end match's affine for 32 px, and where the run of
+        matches tells the line's slope and curvature, along its last chord as far as the
+        curvature keeps that within a quarter pixel (at most ``densify_extend``). Textured
+        patches beyond an untextured stretch and the rims of untextured areas get started:
+        512 and 512 against 128 and 32 raised the coverage of the textured overlap S2 1024^2
+        97.7 -> 99.4 %, strong S2 2048^2 91.6 -> 96.4 %, Landsat 576^2 76.0 -> 84.5 % at
+        matched RMSE 0.039 / 0.052 -> 0.049 / 0.033 px (issue 14's notes). The affine alone
+        over 128 px matched the rims worse (strong S2 0.052 -> 0.062 px); holding the residual
+        about the global polynomial reached further (Landsat 88 %) but made the starts depend
+        on the polynomial, which differs between tilings where it is poorly determined.
     neighbours : 4 or 8.
     max_tries : attempts per pixel from different neighbours within one task.
     max_rounds : limit of halo-exchange rounds.
@@ -123,7 +128,7 @@ class DenseOptions:
     densify_gradients: str = "template"
     densify_tol: float = 0.1
     densify_gap: int = 512
-    densify_extend: int = 32
+    densify_extend: int = 512
     neighbours: int = 4
     max_tries: int = 2
     max_rounds: int = 12
