@@ -235,6 +235,9 @@ def main() -> None:
             modes[mode] = RegisterOptions(matching=DenseOptions(densify_extend=int(mode[3:])))
         elif re.fullmatch(r"gap\d+", mode):  # "gapN": ... and across gaps of the lattice up to N px
             modes[mode] = RegisterOptions(matching=DenseOptions(densify_gap=int(mode[3:])))
+        elif re.fullmatch(r"sigma[0-9.]+", mode):  # "sigmaX": matches accepted up to sigma X px (lattice and every pixel)
+            alsc = DenseOptions().alsc
+            modes[mode] = RegisterOptions(matching=DenseOptions(alsc=replace(alsc, max_sigma=float(mode[5:]))))
         elif re.fullmatch(r"tries\d+", mode):  # "triesN": attempts per lattice pixel
             modes[mode] = RegisterOptions(matching=DenseOptions(max_tries=int(mode[5:])))
     table, holes = [], []
