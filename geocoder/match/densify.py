@@ -30,30 +30,37 @@ __all__ = ["lattice_start", "densify_window"]
 #: Past a line's first and last match the start follows the match's affine for this many px;
 #: beyond, where the run of matches is long enough to tell the line's slope and curvature
 #: (three matches :data:`HOLD_SPAN` px apart), along the slope of the last chord as far as the
-#: curvature keeps it within :data:`HOLD_TOL` px (at most ``max_extend``).
+#: curvature (its estimate plus twice that estimate's noise, from the matches' sigmas) keeps it
+#: within :data:`HOLD_TOL` px (at most ``max_extend``).
 MIN_EXTEND = 32
 HOLD_SPAN = 64
 HOLD_TOL = 0.25
 
 
 @numba.njit(nogil=True, cache=True)
-def _chord_reach(x, y, idx, i, j, j2, max_extend):  # pragma: no cover - compiled
+def _chord_reach(x, y, sx, sy, idx, i, j, j2, max_extend):  # pragma: no cover - compiled
     """Slopes (x, y) of the chord from match ``j`` to the end match ``i`` and how far (px) past
-    ``i`` they stay within HOLD_TOL of a line whose curvature is that of the chords j2-j, j-i."""
+    ``i`` they stay within HOLD_TOL of a line whose curvature is that of the chords j2-j, j-i
+    (plus twice its noise: the matches' sigmas ``sx, sy``)."""
     ci, cj, c2 = idx[i], idx[j], idx[j2]
-    sx, sy = (x[ci] - x[cj]) / (ci - cj), (y[ci] - y[cj]) / (ci - cj)
-    mid = 0.5 * (ci - c2)  # between the two chords' midpoints
-    curv = max(abs(sx - (x[cj] - x[c2]) / (cj - c2)), abs(sy - (y[cj] - y[c2]) / (cj - c2))) / mid
-    d = abs(ci - cj)
-    if curv * (max_extend * max_extend + max_extend * d) <= 2.0 * HOLD_TOL:
-        return sx, sy, max_extend
-    # 0.5 curv (L^2 + L d) = HOLD_TOL: how far the chord's slope carries
-    reach = 0.5 * (np.sqrt(d * d + 8.0 * HOLD_TOL / curv) - d)
-    return sx, sy, int(reach)
+    d1, d0 = abs(ci - cj), abs(cj - c2)
+    slope_x, slope_y = (x[ci] - x[cj]) / (ci - cj), (y[ci] - y[cj]) / (ci - cj)
+    mid = 0.5 * (d1 + d0)  # between the two chords' midpoints
+    curv = 0.0
+    for v, s, slope in ((x, sx, slope_x), (y, sy, slope_y)):
+        second = abs(slope - (v[cj] - v[c2]) / (cj - c2))
+        noise = np.sqrt((s[ci] / d1) ** 2 + (s[cj] * (1.0 / d1 + 1.0 / d0)) ** 2 + (s[c2] / d0) ** 2)
+        curv = max(curv, (second + 2.0 * noise) / mid)
+    if not np.isfinite(curv):
+        return slope_x, slope_y, 0
+    if curv * (max_extend * max_extend + max_extend * d1) <= 2.0 * HOLD_TOL:
+        return slope_x, slope_y, max_extend
+    # 0.5 curv (L^2 + L d1) = HOLD_TOL: how far the chord's slope carries
+    return slope_x, slope_y, int(0.5 * (np.sqrt(d1 * d1 + 8.0 * HOLD_TOL / curv) - d1))
 
 
 @numba.njit(nogil=True, cache=True)
-def _lattice_start(x, y, a11, a21, matched, max_gap, max_extend, x0, y0, started):  # pragma: no cover - compiled
+def _lattice_start(x, y, a11, a21, sx, sy, matched, max_gap, max_extend, x0, y0, started):  # pragma: no cover - compiled
     h, w = matched.shape
     nxt = np.empty(w, dtype=np.int64)  # next matched column at or after each column, per line
     idx = np.empty(w, dtype=np.int64)  # the line's matched columns
@@ -83,11 +90,11 @@ def _lattice_start(x, y, a11, a21, matched, max_gap, max_extend, x0, y0, started
                         j2 = m
                         break
                 if j2 >= 0:
-                    sx, sy, reach = _chord_reach(x[r], y[r], idx, i, j, j2, max_extend)
+                    slope_x, slope_y, reach = _chord_reach(x[r], y[r], sx[r], sy[r], idx, i, j, j2, max_extend)
                     if reach > ext[side, 2, c]:
                         sgn = 1.0 if side == 0 else -1.0
-                        ext[side, 0, c] = sgn * sx
-                        ext[side, 1, c] = sgn * sy
+                        ext[side, 0, c] = sgn * slope_x
+                        ext[side, 1, c] = sgn * slope_y
                         ext[side, 2, c] = reach
         left = -1
         following = -1
@@ -119,7 +126,8 @@ def _lattice_start(x, y, a11, a21, matched, max_gap, max_extend, x0, y0, started
 
 
 def lattice_start(x: np.ndarray, y: np.ndarray, a11: np.ndarray, a21: np.ndarray, matched: np.ndarray, *,
-                  max_gap: int, max_extend: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  max_gap: int, max_extend: int, sigma_x: np.ndarray | None = None,
+                  sigma_y: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Start positions of every pixel from the matched lattice pixels of its scan line.
 
     Parameters
@@ -136,7 +144,11 @@ def lattice_start(x: np.ndarray, y: np.ndarray, a11: np.ndarray, a21: np.ndarray
         Beyond the last matched pixel of a line, starts follow its affine :data:`MIN_EXTEND`
         px (at most ``max_extend``); where the run of matches holds three at least
         :data:`HOLD_SPAN` px apart, the slope of its last chord as far as the curvature of
-        the last two chords keeps that within :data:`HOLD_TOL` px, at most ``max_extend``.
+        the last two chords (plus twice its noise) keeps that within :data:`HOLD_TOL` px, at
+        most ``max_extend``.
+    sigma_x, sigma_y : float (h, w), optional
+        The lattice matches' sigmas (px): the curvature's noise counts against the reach
+        (None: noise-free).
 
     Returns
     -------
@@ -148,9 +160,11 @@ def lattice_start(x: np.ndarray, y: np.ndarray, a11: np.ndarray, a21: np.ndarray
     x0 = np.full((h, w), np.nan)
     y0 = np.full((h, w), np.nan)
     started = np.zeros((h, w), dtype=np.bool_)
+    zero = np.zeros((h, w))
     _lattice_start(np.asarray(x, np.float64), np.asarray(y, np.float64), np.asarray(a11, np.float64),
-                   np.asarray(a21, np.float64), np.asarray(matched, np.bool_), int(max_gap), int(max_extend),
-                   x0, y0, started)
+                   np.asarray(a21, np.float64), zero if sigma_x is None else np.asarray(sigma_x, np.float64),
+                   zero if sigma_y is None else np.asarray(sigma_y, np.float64), np.asarray(matched, np.bool_),
+                   int(max_gap), int(max_extend), x0, y0, started)
     return x0, y0, started
 
 

@@ -103,14 +103,15 @@ class DenseOptions:
         the starts (:func:`geocoder.match.densify.lattice_start`; every start is verified by
         the match). Past the ends: the end match's affine for 32 px, and where the run of
         matches tells the line's slope and curvature, along its last chord as far as the
-        curvature keeps that within a quarter pixel (at most ``densify_extend``). Textured
-        patches beyond an untextured stretch and the rims of untextured areas get started:
-        512 and 512 against 128 and 32 raised the coverage of the textured overlap S2 1024^2
-        97.7 -> 99.4 %, strong S2 2048^2 91.6 -> 96.4 %, Landsat 576^2 76.0 -> 84.5 % at
-        matched RMSE 0.039 / 0.052 -> 0.049 / 0.033 px (issue 14's notes). The affine alone
-        over 128 px matched the rims worse (strong S2 0.052 -> 0.062 px); holding the residual
-        about the global polynomial reached further (Landsat 88 %) but made the starts depend
-        on the polynomial, which differs between tilings where it is poorly determined.
+        curvature (plus twice its noise) keeps that within a quarter pixel (at most
+        ``densify_extend``). 512 and 512 against 128 and 32 raised the coverage of the textured
+        overlap S2 1024^2 97.7 -> 98.8 %, strong S2 2048^2 91.6 -> 95.6 %, Landsat 576^2 76.0
+        -> 81.0 % at the same matched RMSE (issue 14's notes). Not kept: the curvature without
+        its noise (99.4, 96.4, 84.5 %, but a flat half of an aerial crop was matched 0.65 px
+        off, 1.6 % of it by more than 1 px); the affine alone over 128 px (the rims of
+        untextured areas matched worse, strong S2 0.052 -> 0.062 px); holding the residual
+        about the global polynomial (the starts then depend on the polynomial, which differs
+        between tilings where it is poorly determined: 29 px on a pair with a flat half).
     neighbours : 4 or 8.
     max_tries : attempts per pixel from different neighbours within one task.
     max_rounds : limit of halo-exchange rounds.
@@ -499,7 +500,8 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
     if not matched[tile.row0 - br0 : tile.row1 - br0].any():
         return 0, None
     x0, y0, started = lattice_start(f[0] + cols[None, :], f[1] + np.arange(br0, br1)[:, None], f[2], f[3], matched,
-                                    max_gap=opts.densify_gap, max_extend=opts.densify_extend)
+                                    max_gap=opts.densify_gap, max_extend=opts.densify_extend, sigma_x=f[4],
+                                    sigma_y=f[5])
     wsl = (slice(None), slice(bc0 - sc0, bc1 - sc0))
     x0, y0, started = x0[wsl], y0[wsl], started[wsl]
     dwin = distorted_window(Tile(0, 0, br0, br1, bc0, bc1), mapping, opts.margin)
@@ -555,7 +557,7 @@ def _slot_grid(grid: TileGrid, slots: dict[str, int]) -> np.ndarray:
 
 
 _OUT_FIELDS = tuple(FIELDS.index(n) for n in ("x", "y", "sigma_x", "sigma_y", "rho"))
-_START_FIELDS = tuple(FIELDS.index(n) for n in ("x", "y", "a11", "a21"))
+_START_FIELDS = tuple(FIELDS.index(n) for n in ("x", "y", "a11", "a21", "sigma_x", "sigma_y"))
 
 
 def _read_state(state: str, slots: np.ndarray, grid: TileGrid, r0: int, r1: int, c0: int, c1: int,
