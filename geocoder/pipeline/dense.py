@@ -106,12 +106,12 @@ class DenseOptions:
         curvature (plus twice its noise) keeps that within a quarter pixel (at most
         ``densify_extend``). 512 and 512 against 128 and 32 raised the coverage of the textured
         overlap S2 1024^2 97.7 -> 98.8 %, strong S2 2048^2 91.6 -> 95.6 %, Landsat 576^2 76.0
-        -> 81.0 % at the same matched RMSE (issue 14's notes). Not kept: the curvature without
-        its noise (99.4, 96.4, 84.5 %, but a flat half of an aerial crop was matched 0.65 px
-        off, 1.6 % of it by more than 1 px); the affine alone over 128 px (the rims of
-        untextured areas matched worse, strong S2 0.052 -> 0.062 px); holding the residual
-        about the global polynomial (the starts then depend on the polynomial, which differs
-        between tilings where it is poorly determined: 29 px on a pair with a flat half).
+        -> 81.0 % at the same matched RMSE (issue 14's notes; without the noise term 99.2,
+        96.0, 83.0 %: the margin is kept against a curvature small by chance). Not kept: the
+        affine alone over 128 px (the rims of untextured areas matched worse, strong S2 0.052
+        -> 0.062 px); holding the residual about the global polynomial (the starts then
+        depend on the polynomial, which differs between tilings where it is poorly
+        determined: 29 px on a pair with a flat half).
     neighbours : 4 or 8.
     max_tries : attempts per pixel from different neighbours within one task.
     max_rounds : limit of halo-exchange rounds.
