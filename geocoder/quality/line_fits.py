@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .shrinkage import random_effects
+
 #: Quantities :func:`fit_sums` returns per row, all added over the blocks of a row band: the
 #: moments ``sum(u^k)`` of the line coordinate of the matches, ``sum(r u^k)`` of their residuals
 #: in x and y, the residuals' squares and the matches' variances.
@@ -291,7 +293,7 @@ def shrink_block(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray,
 def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The lines' slopes and curvatures shrunk toward a smooth trend across the lines by how
     much the lines differ from it beyond the fits' own noise (empirical Bayes, as
-    :func:`geocoder.quality.lines.shrink_rows` does for the rows' shifts); each line keeps its
+    :func:`geocoder.quality.lines.line_corrections` does for the rows' shifts); each line keeps its
     own shift.
 
     Roll and pitch move every scan line on its own, so a line's shift (coefficient 0) is its
@@ -299,7 +301,8 @@ def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tup
     polynomial's error, yaw) changes slowly from line to line: each such coefficient ``k`` is
     taken to scatter with a variance ``tau2_k`` about a quadratic ``m_k(v)`` in the line's
     position ``v`` across the scene, ``m_k`` fitted by weighted least squares and ``tau2_k``
-    DerSimonian and Laird's moment estimate about it (at least 0). With ``T = diag(tau2)`` (the
+    DerSimonian and Laird's moment estimate about it (at least 0;
+    :func:`geocoder.quality.shrinkage.random_effects`). With ``T = diag(tau2)`` (the
     shift's entry unbounded), a line's covariance ``P`` and ``K = T (T + P)^-1`` the posterior
     is ``m + K (c - m)`` with covariance ``K P + (I - K) M (I - K)^T`` (``M``: the trend's own
     variance at the line). Coefficients that do not vary from line to line beyond their noise
@@ -329,16 +332,7 @@ def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tup
     t[:, 0, 0] = 1e8 * diag[:, 0]  # the shift: no prior worth the name, the line's own
     trend, trend_var = coef.copy(), np.zeros((n, p))
     for k in range(1, p):
-        w = 1.0 / diag[:, k]
-        xtwx_inv = np.linalg.inv(x.T @ (w[:, None] * x))
-        resid = coef[:, k] - x @ (xtwx_inv @ (x.T @ (w * coef[:, k])))
-        scale = np.sum(w) - np.trace(xtwx_inv @ (x.T @ ((w * w)[:, None] * x)))
-        tau2 = max((np.sum(w * resid * resid) - (n - x.shape[1])) / max(scale, 1e-300), 0.0)
-        w = 1.0 / (diag[:, k] + tau2)
-        xtwx_inv = np.linalg.inv(x.T @ (w[:, None] * x))
-        trend[:, k] = x @ (xtwx_inv @ (x.T @ (w * coef[:, k])))
-        trend_var[:, k] = np.einsum("li,ij,lj->l", x, xtwx_inv, x)
-        t[:, k, k] = tau2
+        trend[:, k], trend_var[:, k], t[:, k, k] = random_effects(coef[:, k], diag[:, k], x)
     gain = t @ np.linalg.inv(t + cov)
     rest = np.eye(p) - gain
     shrunk = trend + np.einsum("lij,lj->li", gain, coef - trend)

@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from .shrinkage import shrink
+
 #: Quantities :func:`line_sums` returns per row, in this order: added over the blocks of a row
 #: band, except ``first`` (the smallest column of a usable pixel; +inf without) and ``last``
 #: (the largest; -inf without), reduced by min and max (:func:`combine_sums`).
@@ -197,7 +199,8 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8,
     correlation : int, optional
         Length (px) along a line over which the matches' errors are correlated (a template's
         length). With it, each row's mean is shrunk toward the mean of all rows by how little
-        the rows' means differ beyond their own uncertainty (:func:`shrink_rows`), so rows
+        the rows' means differ beyond their own uncertainty
+        (:func:`geocoder.quality.shrinkage.shrink`), so rows
         that share no shift (a push-broom scene) do not pass their noise on as stripes.
 
     Returns
@@ -218,8 +221,9 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8,
     err_x, err_y = spread_x / safe, spread_y / safe
     if correlation is not None and own.sum() > 2:
         effective = np.maximum(safe / max(correlation, 1), 1.0)
-        cx, err_x = shrink_rows(cx, spread_x / effective, own)
-        cy, err_y = shrink_rows(cy, spread_y / effective, own)
+        common = np.ones((int(own.sum()), 1))  # toward the rows' common mean
+        for c, spread, err in ((cx, spread_x, err_x), (cy, spread_y, err_y)):
+            c[own], err[own] = shrink(c[own], np.maximum(spread[own] / effective[own], 1e-12), common)
     vx = np.maximum(spread_x - noise_x, 0.0) + err_x
     vy = np.maximum(spread_y - noise_y, 0.0) + err_y
     out = {k: np.full(rows, np.nan) for k in ("cx", "cy", "sx", "sy", "first", "last")}
@@ -256,37 +260,6 @@ def line_corrections(sums: np.ndarray, *, min_count: int = 32, max_gap: int = 8,
             out[f"s{name}"][rows_out] = np.sqrt(v[edge_row]) + d * np.abs(c[edge_row] - c[inner]) / span
         out["first"][rows_out], out["last"][rows_out] = first[edge_row], last[edge_row]
     return LineCorrection(**out, own=own)
-
-
-def shrink_rows(mean: np.ndarray, var: np.ndarray, own: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows' means shrunk toward their common mean by how much they differ beyond their noise.
-
-    Empirical Bayes: with ``tau2`` the variance of the rows' true shifts (the variance of the
-    means about their precision-weighted mean, less their mean variance ``var``), a row's mean
-    moves ``tau2 / (tau2 + var)`` of the way from the common mean to its own. Rows that share a
-    turbulence keep theirs; rows of a scene without one fall back to the common mean.
-
-    Parameters
-    ----------
-    mean, var : ndarray (H,)
-        Each row's mean residual and that mean's variance.
-    own : ndarray of bool (H,)
-        Rows with a mean of their own (the others are returned as they are).
-
-    Returns
-    -------
-    mean, var : ndarray (H,)
-        The shrunk means and their posterior variance ``k var``.
-    """
-    m, v = mean[own], np.maximum(var[own], 1e-12)
-    w = 1.0 / v
-    centre = float(np.sum(w * m) / np.sum(w))
-    tau2 = max(float(np.mean((m - centre) ** 2) - np.mean(v)), 0.0)
-    keep = tau2 / (tau2 + v)
-    out_mean, out_var = mean.copy(), var.copy()
-    out_mean[own] = centre + keep * (m - centre)
-    out_var[own] = keep * v
-    return out_mean, out_var
 
 
 @numba.njit(nogil=True, cache=True)
