@@ -166,7 +166,7 @@ def test_lattice_start_interpolates_along_lines():
 
 
 def test_lattice_start_carries_a_long_run_along_its_chord_as_far_as_its_curvature_allows():
-    from geocoder.match.densify import HOLD_SPAN, HOLD_TOL, MIN_EXTEND
+    from geocoder.match.densify import CHORD_SPAN, CHORD_TOL, MIN_EXTEND
 
     h, w = 2, 1400
     cols = np.arange(w, dtype=float)
@@ -180,11 +180,11 @@ def test_lattice_start_carries_a_long_run_along_its_chord_as_far_as_its_curvatur
     matched[1, [0, 16]] = True  # a short run: the affine, MIN_EXTEND px
     x0, _, started = lattice_start(x, y, a11, a21, matched, max_gap=64, max_extend=1000)
     reach = int(np.flatnonzero(started[0])[-1]) - 192
-    d = HOLD_SPAN  # the chord from the end match to the match HOLD_SPAN inside
-    want = 0.5 * (np.sqrt(d * d + 8 * HOLD_TOL / curv) - d)
+    d = CHORD_SPAN  # the chord from the end match to the match CHORD_SPAN inside
+    want = 0.5 * (np.sqrt(d * d + 8 * CHORD_TOL / curv) - d)
     assert abs(reach - want) <= 0.1 * want and reach > 2 * MIN_EXTEND
     past = slice(193, 192 + reach + 1)
-    assert np.abs(x0[0, past] - x[0, past]).max() <= HOLD_TOL * 1.05
+    assert np.abs(x0[0, past] - x[0, past]).max() <= CHORD_TOL * 1.05
     assert started[1].sum() == 17 + MIN_EXTEND
     np.testing.assert_allclose(x0[1, 17 : 17 + MIN_EXTEND], x[1, 16] + 1.01 * np.arange(1, MIN_EXTEND + 1))
 

@@ -29,18 +29,18 @@ __all__ = ["lattice_start", "densify_window"]
 
 #: Past a line's first and last match the start follows the match's affine for this many px;
 #: beyond, where the run of matches is long enough to tell the line's slope and curvature
-#: (three matches :data:`HOLD_SPAN` px apart), along the slope of the last chord as far as the
+#: (three matches :data:`CHORD_SPAN` px apart), along the slope of the last chord as far as the
 #: curvature (its estimate plus twice that estimate's noise, from the matches' sigmas) keeps it
-#: within :data:`HOLD_TOL` px (at most ``max_extend``).
+#: within :data:`CHORD_TOL` px (at most ``max_extend``).
 MIN_EXTEND = 32
-HOLD_SPAN = 64
-HOLD_TOL = 0.25
+CHORD_SPAN = 64
+CHORD_TOL = 0.25
 
 
 @numba.njit(nogil=True, cache=True)
 def _chord_reach(x, y, sx, sy, idx, i, j, j2, max_extend):  # pragma: no cover - compiled
     """Slopes (x, y) of the chord from match ``j`` to the end match ``i`` and how far (px) past
-    ``i`` they stay within HOLD_TOL of a line whose curvature is that of the chords j2-j, j-i
+    ``i`` they stay within CHORD_TOL of a line whose curvature is that of the chords j2-j, j-i
     (plus twice its noise: the matches' sigmas ``sx, sy``)."""
     ci, cj, c2 = idx[i], idx[j], idx[j2]
     d1, d0 = abs(ci - cj), abs(cj - c2)
@@ -53,10 +53,10 @@ def _chord_reach(x, y, sx, sy, idx, i, j, j2, max_extend):  # pragma: no cover -
         curv = max(curv, (second + 2.0 * noise) / mid)
     if not np.isfinite(curv):
         return slope_x, slope_y, 0
-    if curv * (max_extend * max_extend + max_extend * d1) <= 2.0 * HOLD_TOL:
+    if curv * (max_extend * max_extend + max_extend * d1) <= 2.0 * CHORD_TOL:
         return slope_x, slope_y, max_extend
-    # 0.5 curv (L^2 + L d1) = HOLD_TOL: how far the chord's slope carries
-    return slope_x, slope_y, int(0.5 * (np.sqrt(d1 * d1 + 8.0 * HOLD_TOL / curv) - d1))
+    # 0.5 curv (L^2 + L d1) = CHORD_TOL: how far the chord's slope carries
+    return slope_x, slope_y, int(0.5 * (np.sqrt(d1 * d1 + 8.0 * CHORD_TOL / curv) - d1))
 
 
 @numba.njit(nogil=True, cache=True)
@@ -84,9 +84,9 @@ def _lattice_start(x, y, a11, a21, sx, sy, matched, max_gap, max_extend, x0, y0,
                 m = i
                 while 0 <= m + step < k and abs(idx[m + step] - idx[m]) <= max_gap:
                     m += step
-                    if j < 0 and abs(idx[m] - c) >= HOLD_SPAN:
+                    if j < 0 and abs(idx[m] - c) >= CHORD_SPAN:
                         j = m
-                    elif j >= 0 and abs(idx[m] - idx[j]) >= HOLD_SPAN:
+                    elif j >= 0 and abs(idx[m] - idx[j]) >= CHORD_SPAN:
                         j2 = m
                         break
                 if j2 >= 0:
@@ -143,8 +143,8 @@ def lattice_start(x: np.ndarray, y: np.ndarray, a11: np.ndarray, a21: np.ndarray
     max_extend : int
         Beyond the last matched pixel of a line, starts follow its affine :data:`MIN_EXTEND`
         px (at most ``max_extend``); where the run of matches holds three at least
-        :data:`HOLD_SPAN` px apart, the slope of its last chord as far as the curvature of
-        the last two chords (plus twice its noise) keeps that within :data:`HOLD_TOL` px, at
+        :data:`CHORD_SPAN` px apart, the slope of its last chord as far as the curvature of
+        the last two chords (plus twice its noise) keeps that within :data:`CHORD_TOL` px, at
         most ``max_extend``.
     sigma_x, sigma_y : float (h, w), optional
         The lattice matches' sigmas (px): the curvature's noise counts against the reach
