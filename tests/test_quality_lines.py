@@ -353,6 +353,27 @@ def test_filled_pixels_take_their_lines_fit_with_its_sigma(client, tmp_path):
     np.testing.assert_allclose(out["dy"][filled], -out["dx"][filled], atol=1e-5)
 
 
+def test_filled_pixels_of_a_line_without_a_fit_are_estimated(client, tmp_path):
+    # 60 matches per row: a row correction (>= 32) but no fit (< 102); the filled pixel, 0.3 px off
+    # and without a sigma from the post-filter, takes the row's estimate and its spread
+    from geocoder.status import Status
+
+    sigma = 0.05
+    truth, noisy = _fit_field(8, 300, lambda u, r: 0.2 * r + 0.0 * u, sigma)
+    status = np.full(noisy.shape, Status.NO_TEXTURE, np.uint8)
+    status[:, 100:160] = Status.MATCHED
+    status[:, 130] = Status.FILLED
+    noisy[:, 130] = truth[:, 130] + 0.3
+    sig = np.where(status == Status.MATCHED, sigma, np.nan).astype(np.float32)
+    out, fits = _line_field(tmp_path, noisy, -noisy, status, sig, sig, (8, 150), LineOptions(fit_order=2), rows=True,
+                            fits_from_rows=True)
+    assert not fits.ok.any()
+    col = out["status"][:, 130]
+    assert (col == Status.ESTIMATED).all()
+    assert np.abs(out["dx"][:, 130] - truth[:, 130]).max() < 0.1
+    assert np.isfinite(out["sigma_x"][:, 130]).all()
+
+
 def test_line_fits_do_not_depend_on_the_tiling(client, tmp_path):
     sigma = 0.08
     _, noisy = _fit_field(32, 300, lambda u, r: 0.1 * r + 0.2 * u, sigma, seed=3)

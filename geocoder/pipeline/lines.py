@@ -132,7 +132,8 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
     residuals at its ends, else along the whole row from the smooth part along the lines plus
     the row's shift, :func:`_estimates`; status ``ESTIMATED`` with its sigma), every match
     shrunk toward its line's fit and every filled pixel set on it (``fits``, None: not;
-    :func:`~geocoder.quality.line_fits.shrink_block`), and with ``options.smooth`` the
+    :func:`~geocoder.quality.line_fits.shrink_block`; a filled pixel of a row without a fit is
+    estimated like an unmatched one), and with ``options.smooth`` the
     matches smoothed along their lines. Pixels without a usable match
     start from the polynomial ``mapping``.
 
@@ -167,17 +168,17 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
                              *([fit_table(fits)] if shrink else [])]).astype(np.float64)
     tab = da.from_array(table.T[:, :, None], chunks=((table.shape[1],), chunks[0], (1,)))
     cols = da.arange(width, chunks=chunks[1]).reshape(1, 1, width)
-    token = dask.base.tokenize(store, mapping.to_dict(), table, options, correlation, chunks, rows.smooth)
+    token = dask.base.tokenize(store, mapping.to_dict(), table, fits is not None, options, correlation, chunks, rows.smooth)
     stack = da.map_blocks(_line_block, tab, cols, chunks=((6,), *chunks), dtype=np.float32, name=f"line-field-{token}",
                           store=store, shape=(sum(chunks[0]), width), mapping=mapping, options=options, shrink=shrink,
-                          correlation=correlation, smooth_part=rows.smooth)
+                          fitted=fits is not None, correlation=correlation, smooth_part=rows.smooth)
     out = {name: stack[k] for k, name in enumerate(("dx", "dy", "status", "sigma_x", "sigma_y", "correlation"))}
     out["status"] = out["status"].astype(np.uint8)
     return out
 
 
 def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: str, shape: tuple[int, int],
-                mapping: PolyMap, options: LineOptions, shrink: bool, correlation: int,
+                mapping: PolyMap, options: LineOptions, shrink: bool, fitted: bool, correlation: int,
                 smooth_part: np.ndarray | None) -> np.ndarray:
     import zarr
 
@@ -201,7 +202,13 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     cols = np.arange(a + sa, a + sb)
     part = (np.zeros((2, r1 - r0, cols.size)) if smooth_part is None
             else smooth_values(smooth_part, cols[None, :], np.arange(r0, r1)[:, None], shape))
-    dx, dy, sx, sy, status = _estimates(dx, dy, px, py, status, sx, sy, holes[:, :, sa:sb], rows, part)
+    # a filled pixel is set on its line's fit below; in a row without one it has no sigma and is
+    # estimated like an unmatched pixel
+    unfitted = None
+    if fitted:
+        has_fit = t[:, len(ROW_TABLE) : len(ROW_TABLE) + 1] > 0 if shrink else np.zeros((t.shape[0], 1), bool)
+        unfitted = (status == Status.FILLED) & ~has_fit
+    dx, dy, sx, sy, status = _estimates(dx, dy, px, py, status, sx, sy, holes[:, :, sa:sb], rows, part, unfitted)
     if shrink:
         u = line_coordinate(cols, width)
         dx, dy, sx, sy = shrink_block(dx, dy, px, py, status == Status.MATCHED, sx, sy, u, t[:, len(ROW_TABLE):],
@@ -221,7 +228,7 @@ def _hole_block(stack: np.ndarray, *, max_hole: int, edge: int) -> np.ndarray:
     return np.stack([cx, cy, nx, ny, ok]).astype(np.float32)
 
 
-def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np.ndarray):
+def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np.ndarray, also=None):
     """Every unmatched pixel of a corrected row estimated (float32 ``dx, dy, sigma_x, sigma_y``, uint8 ``status``).
 
     A row's estimate is the polynomial plus the smooth part along the lines (``part``,
@@ -229,7 +236,8 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np
     row's shift (:data:`ROW_TABLE`'s ``cx, cy``), along the whole row: roll and pitch move a
     whole scan line, and the smooth part is how the polynomial errs, fitted to every line's
     matches. Its sigma is the row's spread about that (``sx, sy``). Pixels flagged
-    ``NO_TEXTURE`` or ``BLUNDER`` in a hole bounded by usable pixels on both sides of their line
+    ``NO_TEXTURE`` or ``BLUNDER`` (and ``also``, a mask of further pixels to estimate along the
+    line) in a hole bounded by usable pixels on both sides of their line
     (``holes``: :func:`_hole_block`) take the residual interpolated between the hole's ends
     instead, shrunk toward the row's estimate by how far the line is from it beyond the ends'
     noise. Measured on issue 14's cases (``benchmarks/bench_dense_cases.py``): where the
@@ -241,6 +249,8 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np
 
     _, _, cx, cy, sgx, sgy = rows.T
     target = (status == Status.NO_TEXTURE) | (status == Status.BLUNDER)
+    if also is not None:
+        target = target | also
     # a hole needs its ends' noise or its line's spread for a sigma
     known = (np.isfinite(holes[2]) & np.isfinite(holes[3])) | (column(np.isfinite(sgx) & np.isfinite(sgy)) > 0)
     by_hole = target & (holes[4] > 0) & known
