@@ -144,11 +144,22 @@ def test_the_window_follows_workers_that_join_during_a_stage():
     assert max(in_flight) > IN_FLIGHT_PER_THREAD, "the joining worker's thread gets tasks too"
 
 
-def _write_after_work(path: str, started: str) -> int:
-    from distributed import Event
+def _wanted(key: str, dask_scheduler=None) -> bool:
+    ts = dask_scheduler.tasks.get(key)
+    return ts is not None and bool(ts.who_wants)
+
+
+def _write_once_given_up(path: str, started: str, key: str) -> int:
+    """Runs on until the caller has given this task up (cancelled it on the other's error), then
+    writes its file: a running task that a cancel does not stop."""
+    from distributed import Event, get_client
 
     Event(started).set()
-    time.sleep(1.0)  # the task's work, still going on when the other task fails
+    client = get_client()
+    for _ in range(1200):  # at most a minute, should nothing cancel it
+        if not client.run_on_scheduler(_wanted, key):
+            break
+        time.sleep(0.05)
     Path(path).write_text("written by a task that was running when the other failed")
     return 1
 
@@ -167,8 +178,8 @@ def test_an_error_leaves_no_task_writing_behind_it(client, tmp_path):
     name = tmp_path.name
     started = f"started-{name}"
     tasks = {"fail": dask.delayed(_fail_once_started, pure=False)(started, dask_key_name=f"fail-{name}"),
-             "late": dask.delayed(_write_after_work, pure=False)(str(tmp_path / "late"), started,
-                                                                 dask_key_name=f"late-{name}")}
+             "late": dask.delayed(_write_once_given_up, pure=False)(str(tmp_path / "late"), started, f"late-{name}",
+                                                                    dask_key_name=f"late-{name}")}
     with client.as_current(), pytest.raises(ValueError, match="boom"):
         for _ in compute_as_completed(tasks):
             pass
