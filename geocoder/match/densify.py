@@ -64,7 +64,8 @@ def _lattice_start(x, y, a11, a21, sx, sy, matched, max_gap, max_extend, x0, y0,
     h, w = matched.shape
     nxt = np.empty(w, dtype=np.int64)  # next matched column at or after each column, per line
     idx = np.empty(w, dtype=np.int64)  # the line's matched columns
-    # per matched column: the slopes its extension follows (right, left) and how far
+    # per matched column that ends a run (right) or starts one (left): the slopes its extension
+    # follows and how far (read at those columns only)
     ext = np.empty((2, 3, w))
     for r in range(h):
         k = 0
@@ -75,6 +76,9 @@ def _lattice_start(x, y, a11, a21, sx, sy, matched, max_gap, max_extend, x0, y0,
         for i in range(k):
             c = idx[i]
             for side in range(2):  # 0: extended to the right (toward larger columns), 1: to the left
+                outer = i + 1 if side == 0 else i - 1
+                if 0 <= outer < k and abs(idx[outer] - c) <= max_gap:
+                    continue  # inside its run: interpolated, never extended
                 ext[side, 0, c] = a11[r, c] if side == 0 else -a11[r, c]
                 ext[side, 1, c] = a21[r, c] if side == 0 else -a21[r, c]
                 ext[side, 2, c] = min(MIN_EXTEND, max_extend)

@@ -228,7 +228,7 @@ def _hole_block(stack: np.ndarray, *, max_hole: int, edge: int) -> np.ndarray:
     return np.stack([cx, cy, nx, ny, ok]).astype(np.float32)
 
 
-def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np.ndarray, also=None):
+def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np.ndarray, more=None):
     """Every unmatched pixel of a corrected row estimated (float32 ``dx, dy, sigma_x, sigma_y``, uint8 ``status``).
 
     A row's estimate is the polynomial plus the smooth part along the lines (``part``,
@@ -236,8 +236,8 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np
     row's shift (:data:`ROW_TABLE`'s ``cx, cy``), along the whole row: roll and pitch move a
     whole scan line, and the smooth part is how the polynomial errs, fitted to every line's
     matches. Its sigma is the row's spread about that (``sx, sy``). Pixels flagged
-    ``NO_TEXTURE`` or ``BLUNDER`` (and ``also``, a mask of further pixels to estimate along the
-    line) in a hole bounded by usable pixels on both sides of their line
+    ``NO_TEXTURE`` or ``BLUNDER`` (and ``more``, a mask of further pixels to estimate, as the
+    filled pixels of rows without a line fit) in a hole bounded by usable pixels on both sides of their line
     (``holes``: :func:`_hole_block`) take the residual interpolated between the hole's ends
     instead, shrunk toward the row's estimate by how far the line is from it beyond the ends'
     noise. Measured on issue 14's cases (``benchmarks/bench_dense_cases.py``): where the
@@ -249,8 +249,8 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np
 
     _, _, cx, cy, sgx, sgy = rows.T
     target = (status == Status.NO_TEXTURE) | (status == Status.BLUNDER)
-    if also is not None:
-        target = target | also
+    if more is not None:
+        target = target | more
     # a hole needs its ends' noise or its line's spread for a sigma
     known = (np.isfinite(holes[2]) & np.isfinite(holes[3])) | (column(np.isfinite(sgx) & np.isfinite(sgy)) > 0)
     by_hole = target & (holes[4] > 0) & known
