@@ -76,8 +76,7 @@ def _block_sums(dx, dy, px, py, status, sigma_x, sigma_y, block_info=None, *, sh
 
 
 def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], options: LineOptions,
-                    *, correlation: int = 51, across: int = 1,
-                    sums: np.ndarray | None = None) -> tuple[LineCorrection, LineFit | None]:
+                    *, correlation: int = 51, sums: np.ndarray | None = None) -> tuple[LineCorrection, LineFit | None]:
     """Compute the correction of every row of a dense field (its matched and filled pixels),
     and the fit along every row that its matches are shrunk toward (None with
     ``options.fit_order = -1``), from one pass over the field.
@@ -91,8 +90,6 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     options : LineOptions
     correlation : int
         Template length along the line (px): a row's fit needs twice as many matches.
-    across : int
-        Template rows (neighbouring lines share their matches' errors).
     sums : ndarray, shape (n, H, tile columns), optional
         The tiles' :func:`tile_sums` side by side, if computed already (by the stored
         post-filter pass, :func:`geocoder.pipeline.dense.dense_field`); else one pass over
@@ -117,7 +114,7 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     if options.fit_order < 0:
         return rows, None
     fits = line_fits(sums[len(SUMS):k].sum(axis=-1), order=options.fit_order,
-                     min_count=max(options.min_count, 2 * correlation), correlation=correlation, across=across)
+                     min_count=max(options.min_count, 2 * correlation), correlation=correlation)
     return rows, fits
 
 

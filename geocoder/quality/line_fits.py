@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .shrinkage import moderated_variance, random_effects
+from .shrinkage import random_effects
 
 #: Quantities :func:`fit_sums` returns per row, all added over the blocks of a row band: the
 #: moments ``sum(u^k)`` of the line coordinate of the matches, ``sum(r u^k)`` of their residuals
@@ -290,32 +290,25 @@ def shrink_block(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray,
     return out[0], out[2], out[1], out[3]
 
 
-#: A spread of the lines' coefficients about their trend counts only beyond this many standard
-#: deviations of what their noise gives by chance (:func:`shrink_coefficients`).
-SPREAD_Z = 2.0
+def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lines' slopes and curvatures shrunk toward a smooth trend across the lines by how
+    much the lines differ from it beyond the fits' own noise (empirical Bayes, as
+    :func:`geocoder.quality.lines.line_corrections` does for the rows' shifts); each line keeps its
+    own shift.
 
-
-def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray, *,
-                        across: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """The lines' coefficients shrunk toward a smooth trend across the lines by how much the
-    lines differ from it beyond the fits' own noise (empirical Bayes, as
-    :func:`geocoder.quality.lines.line_corrections` does for the rows' shifts).
-
-    Each coefficient ``k`` (the shift, which roll and pitch move line by line; the slope and
-    curvature, the global polynomial's error and yaw, which change slowly) is taken to scatter
-    with a variance ``tau2_k`` about a quadratic ``m_k(v)`` in the line's position ``v``
-    across the scene, ``m_k`` fitted by weighted least squares and ``tau2_k`` DerSimonian and
-    Laird's moment estimate about it, counted only beyond :data:`SPREAD_Z` standard deviations
-    of what the fits' noise gives by chance (:func:`geocoder.quality.shrinkage.random_effects`;
-    neighbouring lines share their errors over ``across`` lines, the template's rows). With
-    ``T = diag(tau2)``, a line's covariance ``P`` and ``K = T (T + P)^-1`` the posterior is
-    ``m + K (c - m)`` with covariance ``K P + (I - K) M (I - K)^T`` (``M``: the trend's own
+    Roll and pitch move every scan line on its own, so a line's shift (coefficient 0) is its
+    own. How the displacement changes along a line (the higher coefficients: the global
+    polynomial's error, yaw) changes slowly from line to line: each such coefficient ``k`` is
+    taken to scatter with a variance ``tau2_k`` about a quadratic ``m_k(v)`` in the line's
+    position ``v`` across the scene, ``m_k`` fitted by weighted least squares and ``tau2_k``
+    DerSimonian and Laird's moment estimate about it (at least 0;
+    :func:`geocoder.quality.shrinkage.random_effects`). With ``T = diag(tau2)`` (the
+    shift's entry unbounded), a line's covariance ``P`` and ``K = T (T + P)^-1`` the posterior
+    is ``m + K (c - m)`` with covariance ``K P + (I - K) M (I - K)^T`` (``M``: the trend's own
     variance at the line). Coefficients that do not vary from line to line beyond their noise
     come back on the trend, known to the precision of all lines together instead of one
-    line's: the slopes and curvatures of every case of issue 14 (the matches' RMSE fell by a
-    quarter to a third), and the shifts where no turbulence moves the lines (a smooth field:
-    the dense field is then as good as the global polynomial); a turbulent line's shift, far
-    beyond its noise, stays its own.
+    line's (issue 14: on the simulator's cases the matches' RMSE falls by a quarter to a
+    third).
 
     Parameters
     ----------
@@ -325,9 +318,6 @@ def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray, *,
         Their covariances.
     v : ndarray (L,)
         The lines' position across the scene (:func:`line_coordinate` of the row).
-    across : int
-        Rows of the matching template: a line's errors are shared with its neighbours up to
-        ``across - 1`` rows away.
 
     Returns
     -------
@@ -339,9 +329,10 @@ def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray, *,
         return coef, cov
     diag = np.maximum(np.diagonal(cov, axis1=1, axis2=2), 1e-300)
     t = np.zeros((n, p, p))
+    t[:, 0, 0] = 1e8 * diag[:, 0]  # the shift: no prior worth the name, the line's own
     trend, trend_var = coef.copy(), np.zeros((n, p))
-    for k in range(p):
-        trend[:, k], trend_var[:, k], t[:, k, k] = random_effects(coef[:, k], diag[:, k], x, shared=across, z=SPREAD_Z)
+    for k in range(1, p):
+        trend[:, k], trend_var[:, k], t[:, k, k] = random_effects(coef[:, k], diag[:, k], x)
     gain = t @ np.linalg.inv(t + cov)
     rest = np.eye(p) - gain
     shrunk = trend + np.einsum("lij,lj->li", gain, coef - trend)
@@ -349,8 +340,7 @@ def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray, *,
     return shrunk, gain @ cov + rest @ (trend_var[:, :, None] * np.swapaxes(rest, 1, 2))
 
 
-def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correlation: int = 51,
-              across: int = 1) -> LineFit:
+def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correlation: int = 51) -> LineFit:
     """Least-squares polynomial of order ``order`` along every row from :data:`FIT_SUMS`.
 
     After the global polynomial, what is left of a scanner's displacement along one line is
@@ -372,8 +362,6 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
         Fewest matches a row needs for a fit.
     correlation : int
         Template length along the line (px): neighbouring matches share most of their template.
-    across : int
-        Template rows: neighbouring lines share their matches' errors (:func:`shrink_coefficients`).
 
     Returns
     -------
@@ -405,15 +393,9 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
         # residual sum of squares of a least-squares fit: sum(r^2) - coef . rhs
         ss = np.maximum(s[rr, ok] - np.einsum("ri,ri->r", coef, rhs), 0.0)
         noise = s[v, ok] / n[ok]
-        # how far the matches are shrunk: the residuals' variance over the matches' noise beyond 1,
-        # counted as if the matches were independent (as tuned on issue 14's cases; smaller than
-        # the spread below). A row holds some n / correlation independent residuals, so its
-        # ratio scatters by chance (by half on a 512-px line): each is moderated toward all
-        # rows' by how much they differ beyond that (on a smooth field the lines' chance
-        # departures kept 20-40 % of their matches' noise)
-        ratio, _ = moderated_variance(ss / (n[ok] - p) / np.maximum(noise, 1e-300),
-                                      np.maximum(n[ok] / correlation - p, 1.0))
-        var[f"tau2_{name}"][ok] = np.maximum(ratio - 1.0, 0.0) * noise
+        # how far the matches are shrunk: as tuned on issue 14's cases, the residuals' variance
+        # counted as if the matches were independent (smaller than the spread below)
+        var[f"tau2_{name}"][ok] = np.maximum(ss / (n[ok] - p) - noise, 0.0)
         # the fit's own variance: neighbouring matches share their errors over ``correlation``
         # px, so a row holds about n / correlation independent ones and the fit takes p of them:
         # the residuals' variance over the rest (counted over n - p, the fit's sigma came out
@@ -421,7 +403,7 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
         dof = n[ok] - p * correlation
         spread = np.where(dof >= correlation, ss / np.maximum(dof, 1.0), noise)
         out[f"c{name}"][ok, :p], post[a] = shrink_coefficients(coef, (spread * correlation)[:, None, None] * inv,
-                                                               line_coordinate(np.flatnonzero(ok), rows), across=across)
+                                                               line_coordinate(np.flatnonzero(ok), rows))
         var[f"spread_{name}"][ok] = spread
     # the fit's variance a(u)^T P a(u), a = (1, u, u^2)[:p], as a quartic in u; x and y apart
     lev = np.zeros((2, rows, 5))
