@@ -9,7 +9,13 @@ until issue 12's lattice + every-pixel pass) and with today's default. Printed p
 mode: RMSE, share of the overlap and share off by more than 1 px per status (matched,
 filled, estimated, the rest) and over the whole overlap; coverage of the textured overlap
 (:func:`geocoder.testing.textured_overlap`); calibration RMSE / RMS(sigma) per axis on matched
-pixels; wall time.
+pixels; wall time; and the global polynomial's own RMSE on the matched pixels (on a smooth
+case, what the dense field should be no noisier than).
+
+A change to the line fits must also be measured on a real field (``bench_error_analysis.py``,
+or ``tests/test_error_analysis.py``): the simulator's fields are a shift per line plus a
+smooth field, and pooling the lines' shifts and departures across the lines, which these
+cases reward, left sigma optimistic (1.6 / 2.2) on a real field with finer structure.
 
 Then seed 003 sec. 10's check of hole filling, on the default's output: in scan lines that
 are at least 90 % matched, a stretch of L matched pixels is removed (one per line, at a
