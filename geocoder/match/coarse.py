@@ -22,6 +22,9 @@ from ..kernels.robust import StopReason
 
 #: smallest normalised phase-correlation peak taken as a real match
 MIN_PEAK = 0.03
+#: a plain shift's phase-correlation peak from which no rotation or scale is looked for
+#: (Fourier-Mellin): the overviews then differ by little more than a shift
+DECISIVE_PEAK = 0.5
 
 
 class Hypothesis(StrEnum):
@@ -196,8 +199,9 @@ def align_overviews(
 ) -> CoarseAlignment:
     """Coarse affine between two overviews, returned in full-resolution pixel frames.
 
-    Hypotheses: the georeference ``prior`` if given, else the Fourier-Mellin similarity and
-    the identity. Each gets its translation corrected by phase correlation, the one with the
+    Hypotheses: the georeference ``prior`` if given, else the identity and, unless its
+    translation already correlates with a peak of :data:`DECISIVE_PEAK`, the Fourier-Mellin
+    similarity. Each gets its translation corrected by phase correlation, the one with the
     highest peak wins, and local phase correlations then refine it to a full affine.
 
     Parameters
@@ -216,16 +220,8 @@ def align_overviews(
     """
     o = _overview_frame(factor)
     o_inv = np.linalg.inv(o)
-    hypotheses: list[tuple[Hypothesis, np.ndarray]] = []
-    if prior is not None:
-        hypotheses.append((Hypothesis.GEOREFERENCE, o_inv @ _h(prior) @ o))
-    else:
-        sim = estimate_similarity(base, dist)
-        if np.all(np.isfinite(sim.matrix)):
-            hypotheses.append((Hypothesis.FOURIER_MELLIN, _h(sim.matrix)))
-        hypotheses.append((Hypothesis.TRANSLATION, np.eye(3)))
-    best = None
-    for name, start in hypotheses:
+
+    def shifted_start(name: Hypothesis, start: np.ndarray) -> tuple:
         refined, peak = refine_translation(base, dist, start, local=name == Hypothesis.GEOREFERENCE)
         shifted = peak >= min_peak
         if shifted:
@@ -234,8 +230,21 @@ def align_overviews(
                 refined, peak = again, peak2
         else:
             refined = start
-        if best is None or peak > best[3]:
-            best = (name, shifted, refined, peak)
+        return name, shifted, refined, peak
+
+    if prior is not None:
+        best = shifted_start(Hypothesis.GEOREFERENCE, o_inv @ _h(prior) @ o)
+    else:
+        # a plain shift first: where it correlates decisively, rotation and scale are small
+        # enough for the affine refinement below, and Fourier-Mellin (three quarters of the
+        # alignment's time) is not needed
+        best = shifted_start(Hypothesis.TRANSLATION, np.eye(3))
+        if best[3] < DECISIVE_PEAK:
+            sim = estimate_similarity(base, dist)
+            if np.all(np.isfinite(sim.matrix)):
+                other = shifted_start(Hypothesis.FOURIER_MELLIN, _h(sim.matrix))
+                if other[3] >= best[3]:
+                    best = other
     name, shifted, matrix, peak = best
     if peak < min_peak and prior is None:
         raise MatchingError(f"no overlap found between the images (best correlation peak {peak:.3f} < {min_peak})")
