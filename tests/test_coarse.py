@@ -62,6 +62,28 @@ def test_georeference_prior_is_corrected_by_phase_correlation():
     np.testing.assert_allclose(ca.matrix, [[1, 0, 5], [0, 1, -7]], atol=0.05)
 
 
+@pytest.mark.data
+@pytest.mark.parametrize("angle, start", [(0.5, "translation"), (10.0, "fourier-mellin")])
+def test_fourier_mellin_only_where_a_shift_does_not_correlate(shared_data, angle, start):
+    """Without a georeference a plain shift is tried first; Fourier-Mellin (three quarters of
+    the alignment's time) only where the shift's peak is not decisive. Both ways the affine is
+    found: a half-degree rotation by the local refinement, ten degrees from Fourier-Mellin."""
+    src = read_band(shared_data / "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif", 1, (200, 1400, 1000, 2200))
+    size, origin = 384, (300, 300)
+    base = src[origin[0] : origin[0] + size, origin[1] : origin[1] + size].astype(np.float64)
+    m = _similarity(angle, 1.0, (191.5, 191.5), (12.0, -7.0))
+    dist = _render(src, m, (400, 400), origin)
+    found = align_overviews(base, dist, 1)
+    print(angle, found.method, found.peak)
+    assert found.method.startswith(start)
+    gy, gx = np.mgrid[0:size:32, 0:size:32].astype(float)
+    fx = found.matrix[0, 0] * gx + found.matrix[0, 1] * gy + found.matrix[0, 2]
+    fy = found.matrix[1, 0] * gx + found.matrix[1, 1] * gy + found.matrix[1, 2]
+    tx = m[0, 0] * gx + m[0, 1] * gy + m[0, 2]
+    ty = m[1, 0] * gx + m[1, 1] * gy + m[1, 2]
+    assert np.hypot(fx - tx, fy - ty).max() < 1.0  # a coarse start: the tie points refine it
+
+
 def test_unrelated_images_raise():
     rng = np.random.default_rng(2)
     a = ndi.gaussian_filter(rng.normal(size=(128, 128)), 3)
