@@ -152,6 +152,43 @@ def test_jacobian_bound_is_a_bound() -> None:
     np.testing.assert_allclose(gyy, (field.displacement(x, y + h)[1] - field.displacement(x, y - h)[1]) / (2 * h), atol=1e-7)
 
 
+def test_relief_is_finer_than_a_line_and_leaves_the_rest_of_the_draw_alone() -> None:
+    """A relief-like term (plane waves of tens of pixels, mostly across the lines) is added
+    after every other draw: without it a seed gives the same field as before it existed; with
+    it the displacement stays within its budget, the partials are its exact derivatives, the
+    Jacobian bound holds, and the field inverts."""
+    shape = (300, 260)
+    plain = WarpField.random(shape, seed=9, turbulence=(1, 3), max_displacement=12.0)
+    again = WarpField.random(shape, seed=9, turbulence=(1, 3), max_displacement=12.0, relief=None)
+    for name in ("affine", "quadratic", "turbulence_x", "turbulence_y"):
+        np.testing.assert_array_equal(getattr(plain, name), getattr(again, name))
+    assert plain.relief.shape == (0, 5)
+    field = WarpField.random(shape, seed=9, turbulence=(1, 3), max_displacement=12.0, relief=(0.6, 40.0))
+    assert field.relief.shape == (6, 5)
+    np.testing.assert_array_equal(field.turbulence_x, plain.turbulence_x)
+    xx, yy = _grid(shape)
+    rx, ry = field.relief_part(xx, yy)
+    assert 0.1 < np.abs(rx).max() <= 0.6 and np.abs(ry).max() < np.abs(rx).max()
+    # it varies along a line over tens of pixels: a quadratic along each line leaves most of it
+    resid = rx - np.stack([np.polyval(np.polyfit(xx[r], rx[r], 2), xx[r]) for r in range(shape[0])])
+    assert resid.std() > 0.7 * rx.std()
+    assert field.max_displacement(shape) <= 12.0 + 1e-9
+    dx, dy = field.displacement(xx, yy)
+    fd = max(np.abs(np.diff(d, axis=a)).max() for d in (dx, dy) for a in (0, 1))
+    assert fd <= field.jacobian_bound(shape) + 1e-6
+    h = 1e-4
+    x, y = xx[::7, ::7] + 0.3, yy[::7, ::7] + 0.4
+    gxx, gxy, gyx, gyy = field.partials(x, y)
+    np.testing.assert_allclose(gxx, (field.displacement(x + h, y)[0] - field.displacement(x - h, y)[0]) / (2 * h), atol=1e-7)
+    np.testing.assert_allclose(gxy, (field.displacement(x, y + h)[0] - field.displacement(x, y - h)[0]) / (2 * h), atol=1e-7)
+    np.testing.assert_allclose(gyx, (field.displacement(x + h, y)[1] - field.displacement(x - h, y)[1]) / (2 * h), atol=1e-7)
+    np.testing.assert_allclose(gyy, (field.displacement(x, y + h)[1] - field.displacement(x, y - h)[1]) / (2 * h), atol=1e-7)
+    px, py = invert(field, xx + dx, yy + dy)
+    assert np.abs(px - xx).max() < 1e-8 and np.abs(py - yy).max() < 1e-8
+    with pytest.raises(ValueError, match="relief"):
+        WarpField.random(shape, seed=9, relief=(-1.0, 40.0))
+
+
 # --------------------------------------------------------------- invert
 @pytest.mark.parametrize("turbulence", [None, (1.0, 3.0)])
 def test_invert_roundtrip(turbulence) -> None:

@@ -23,7 +23,7 @@ The module is pure numpy/scipy (no dask, xarray or zarr).  It is over 500 lines 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -44,6 +44,8 @@ _TURBULENCE_SLOPE_MAX = 0.2
 _JACOBIAN_MAX = 0.45
 #: Maximum number of sample points per axis used to bound |d| over a grid.
 _BOUND_SAMPLES = 513
+#: plane waves of a relief-like displacement (:meth:`WarpField.random`)
+_RELIEF_WAVES = 6
 
 
 def _as_float_array(a: Any, name: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
@@ -60,8 +62,8 @@ class WarpField:
 
     With ``u = x - cx`` and ``v = y - cy`` (centred frame)::
 
-        dx = A[0, 0] u + A[0, 1] v + A[0, 2] + Q[0, 0] u**2 + Q[0, 1] u v + Q[0, 2] v**2 + tx(y)
-        dy = A[1, 0] u + A[1, 1] v + A[1, 2] + Q[1, 0] u**2 + Q[1, 1] u v + Q[1, 2] v**2 + ty(y)
+        dx = A[0, 0] u + A[0, 1] v + A[0, 2] + Q[0, 0] u**2 + Q[0, 1] u v + Q[0, 2] v**2 + tx(y) + rx(x, y)
+        dy = A[1, 0] u + A[1, 1] v + A[1, 2] + Q[1, 0] u**2 + Q[1, 1] u v + Q[1, 2] v**2 + ty(y) + ry(x, y)
 
     where ``tx``/``ty`` are the scan-line turbulence profiles, linearly
     interpolated in ``y`` between base rows and clamped beyond the first and
@@ -82,6 +84,10 @@ class WarpField:
         empty, meaning zero).
     turbulence_y : numpy.ndarray
         Same for ``dy``.
+    relief : numpy.ndarray
+        ``(k, 5)`` rows ``(ax, ay, kx, ky, phase)``: ``rx = sum ax sin(kx x + ky y + phase)``
+        and ``ry`` likewise with ``ay`` (pixel coordinates, not centred); a displacement that
+        varies within a scan line over tens of pixels, as relief does (default: none).
 
     Notes
     -----
@@ -94,6 +100,7 @@ class WarpField:
     centre: tuple[float, float]
     turbulence_x: np.ndarray
     turbulence_y: np.ndarray
+    relief: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "affine", _as_float_array(self.affine, "affine", (2, 3)))
@@ -111,6 +118,10 @@ class WarpField:
             object.__setattr__(self, name, arr)
         if not (np.all(np.isfinite(self.affine)) and np.all(np.isfinite(self.quadratic))):
             raise ValueError("affine and quadratic coefficients must be finite")
+        relief = _as_float_array(self.relief, "relief")
+        if relief.ndim != 2 or relief.shape[1] != 5 or not np.all(np.isfinite(relief)):
+            raise ValueError(f"relief must be finite rows (ax, ay, kx, ky, phase), got shape {relief.shape}")
+        object.__setattr__(self, "relief", relief)
 
     # ------------------------------------------------------------------ parts
     def affine_part(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -168,6 +179,27 @@ class WarpField:
         y = np.asarray(y, dtype=np.float64)
         return _interp_rows(self.turbulence_x, y), _interp_rows(self.turbulence_y, y)
 
+    def relief_part(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Relief-like component of the displacement (sum of plane waves, see ``relief``).
+
+        Parameters
+        ----------
+        x, y : array_like
+            Base pixel coordinates (broadcast against each other).
+
+        Returns
+        -------
+        dx, dy : numpy.ndarray
+            float64 arrays of the broadcast shape.
+        """
+        x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        dx, dy = np.zeros(x.shape), np.zeros(x.shape)
+        for ax, ay, kx, ky, phase in self.relief:
+            wave = np.sin(kx * x + ky * y + phase)
+            dx += ax * wave
+            dy += ay * wave
+        return dx, dy
+
     # ------------------------------------------------------------- public API
     def displacement(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Evaluate ``d(x, y) = p_distorted - p_base``.
@@ -197,6 +229,10 @@ class WarpField:
         dy += v * (a[1, 1] + q[1, 2] * v)
         dy += ty
         dy += a[1, 2]
+        if len(self.relief):
+            rx, ry = self.relief_part(x, y)
+            dx += rx
+            dy += ry
         return dx, dy
 
     def partials(
@@ -225,6 +261,12 @@ class WarpField:
         gxy = a[0, 1] + q[0, 1] * u + 2.0 * q[0, 2] * v + _slope_rows(self.turbulence_x, y)
         gyx = a[1, 0] + 2.0 * q[1, 0] * u + q[1, 1] * v
         gyy = a[1, 1] + q[1, 1] * u + 2.0 * q[1, 2] * v + _slope_rows(self.turbulence_y, y)
+        for ax, ay, kx, ky, phase in self.relief:
+            wave = np.cos(kx * x + ky * y + phase)
+            gxx = gxx + ax * kx * wave
+            gxy = gxy + ax * ky * wave
+            gyx = gyx + ay * kx * wave
+            gyy = gyy + ay * ky * wave
         return gxx, gxy, gyx, gyy
 
     def jacobian_bound(self, shape: tuple[int, int]) -> float:
@@ -256,6 +298,11 @@ class WarpField:
         gyy = np.abs(a[1, 1] + q[1, 1] * u + 2.0 * q[1, 2] * v).max()
         gxy += _max_slope(self.turbulence_x, h)
         gyy += _max_slope(self.turbulence_y, h)
+        r = np.abs(self.relief)
+        gxx += float(np.sum(r[:, 0] * r[:, 2]))
+        gxy += float(np.sum(r[:, 0] * r[:, 3]))
+        gyx += float(np.sum(r[:, 1] * r[:, 2]))
+        gyy += float(np.sum(r[:, 1] * r[:, 3]))
         return float(max(gxx, gxy, gyx, gyy))
 
     def max_displacement(self, shape: tuple[int, int]) -> float:
@@ -293,6 +340,7 @@ class WarpField:
         affine_max: float | None = None,
         turbulence: tuple[float, float] | None = None,
         turbulence_scale: float = 30.0,
+        relief: tuple[float, float] | None = None,
     ) -> "WarpField":
         """Draw a random smooth field (affine + quadratic + optional turbulence).
 
@@ -320,6 +368,13 @@ class WarpField:
             sum of 3-4 sinusoids with periods between ``2/3`` and ``20/3`` of
             it (20-200 lines for the default 30) and a random walk smoothed
             with a Gaussian of sigma ``turbulence_scale / 2``.
+        relief : tuple of float, optional
+            ``(peak, wavelength)``: a relief-like displacement of at most ``peak`` px, the
+            sum of :data:`_RELIEF_WAVES` plane waves of wavelengths within ``[0.5, 1.5]``
+            times ``wavelength`` px in random directions, mostly across the lines (x; y a
+            third as strong): structure finer than a scan line's fit, which neither the
+            polynomial nor a per-line shift follows. Drawn after the turbulence, from the
+            same generator, so a field without it is the same as before it existed.
 
         Returns
         -------
@@ -364,6 +419,19 @@ class WarpField:
             tx = _turbulence_profile(h, rng, rng.uniform(amin, amax), turbulence_scale)
             ty = _turbulence_profile(h, rng, rng.uniform(amin, amax), turbulence_scale)
         turb_peak = float(np.sqrt(tx * tx + ty * ty).max()) if h else 0.0
+        waves = np.zeros((0, 5))
+        if relief is not None:
+            peak, wavelength = (float(r) for r in relief)
+            if not (np.isfinite(peak) and peak >= 0 and np.isfinite(wavelength) and wavelength > 0):
+                raise ValueError(f"relief must be (peak >= 0, wavelength > 0), got {relief}")
+            n = _RELIEF_WAVES
+            amp = rng.uniform(0.5, 1.0, n)
+            amp *= peak / amp.sum()  # the waves' amplitudes add up to the peak
+            k = 2.0 * np.pi / (wavelength * rng.uniform(0.5, 1.5, n))
+            direction = rng.uniform(0.0, 2.0 * np.pi, n)
+            waves = np.column_stack([amp, amp * rng.uniform(-1.0, 1.0, n) / 3.0, k * np.cos(direction),
+                                     k * np.sin(direction), rng.uniform(0.0, 2.0 * np.pi, n)])
+            turb_peak += float(np.hypot(waves[:, 0], waves[:, 1]).sum())
         budget = max_displacement - turb_peak
         if budget <= 0.05 * max_displacement:
             raise ValueError(
@@ -425,7 +493,10 @@ class WarpField:
             turbulence_y=np.zeros(0),
         )
         smooth_jac = probe.jacobian_bound((h, w))
-        allowed = _JACOBIAN_MAX - max(_max_slope(tx, h), _max_slope(ty, h))
+        relief_slope = float(np.hypot(waves[:, 0], waves[:, 1]) @ np.hypot(waves[:, 2], waves[:, 3]))
+        allowed = _JACOBIAN_MAX - max(_max_slope(tx, h), _max_slope(ty, h)) - relief_slope
+        if allowed <= 0:
+            raise ValueError(f"relief {relief} slopes by {relief_slope:.3g} px/px: the field would fold")
         if smooth_jac > allowed:
             lin *= allowed / smooth_jac
             quad *= allowed / smooth_jac
@@ -436,6 +507,7 @@ class WarpField:
             centre=(cx, cy),
             turbulence_x=tx,
             turbulence_y=ty,
+            relief=waves,
         )
 
     # ---------------------------------------------------------------- private
@@ -735,6 +807,7 @@ def make_pair(
     margin: int = 32,
     order: int = 3,
     affine_max: float | None = None,
+    relief: tuple[float, float] | None = None,
 ) -> SyntheticPair:
     """Cut a base image from ``source`` and render a distorted copy with known truth.
 
@@ -752,7 +825,7 @@ def make_pair(
         Seed of everything.  The field is ``WarpField.random(shape,
         seed=seed, ...)``; the radiometric draws use
         ``default_rng([seed, 1])``.
-    max_displacement, turbulence, affine_max
+    max_displacement, turbulence, affine_max, relief
         Passed to :meth:`WarpField.random`.
     noise : float, optional
         Sigma of the Gaussian noise added to each image, as a fraction of the
@@ -808,6 +881,7 @@ def make_pair(
         max_displacement=max_displacement,
         affine_max=affine_max,
         turbulence=turbulence,
+        relief=relief,
     )
 
     yq, xq = np.indices((hd, wd), dtype=np.float64)
