@@ -2,7 +2,8 @@
 
 Every case is a real image (Sentinel-2, Landsat 7, two aerial photographs from ../shared/data)
 or the demo's synthetic texture, cut and warped by the simulator (affine + quadratic up to
-15 px, scan-line turbulence of the given strength or none, 2 % noise, gain and offset), so
+15 px, scan-line turbulence of the given strength or none, on two cases a relief-like
+displacement that varies along the lines over 30-225 px, 2 % noise, gain and offset), so
 every pixel has a known true displacement. Each case is registered twice on one local
 cluster: with full region growing (``DenseOptions(col_step=1, halo=4)``, the dense default
 until issue 12's lattice + every-pixel pass) and with today's default. Printed per case and
@@ -12,10 +13,11 @@ filled, estimated, the rest) and over the whole overlap; coverage of the texture
 pixels; wall time; and the global polynomial's own RMSE on the matched pixels (on a smooth
 case, what the dense field should be no noisier than).
 
-A change to the line fits must also be measured on a real field (``bench_error_analysis.py``,
-or ``tests/test_error_analysis.py``): the simulator's fields are a shift per line plus a
-smooth field, and pooling the lines' shifts and departures across the lines, which these
-cases reward, left sigma optimistic (1.6 / 2.2) on a real field with finer structure.
+A change to the line fits must also be measured on the relief cases and on a real field
+(``bench_error_analysis.py``, or ``tests/test_error_analysis.py``): without relief the
+simulator's fields are a shift per line plus a smooth field, and pooling the lines' shifts
+and departures across the lines, which those cases reward, left sigma optimistic (1.6 / 2.2)
+on a real field with finer structure.
 
 Then seed 003 sec. 10's check of hole filling, on the default's output: in scan lines that
 are at least 90 % matched, a stretch of L matched pixels is removed (one per line, at a
@@ -57,6 +59,7 @@ class Case:
     size: int
     seed: int
     turbulence: tuple[float, float] | None
+    relief: tuple[float, float] | None = None  # (peak px, wavelength px): structure finer than a line
 
 
 CASES = {c.name: c for c in (
@@ -67,6 +70,12 @@ CASES = {c.name: c for c in (
     Case("aerial-512", "baviaanskloof/ngi_rgb_byte_1.tif", (60, 107), 512, 21, (1.0, 3.0)),
     Case("aerial2-512-mild", "baviaanskloof/3324c_2015_1004_05_0182_RGB.tif", (300, 16), 512, 25, (0.5, 1.5)),
     Case("demo-1024-smooth", None, (0, 0), 1024, 0, None),
+    # relief-like structure along the lines (0.5 px peak), finer than any line fit: of wavelengths
+    # near the template's width (mostly averaged away by it) and near three times it
+    Case("s2-1024-relief60", "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif", (300, 1100), 1024, 22, (1.0, 3.0),
+         relief=(0.5, 60.0)),
+    Case("s2-1024-relief150", "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif", (300, 1100), 1024, 22, (1.0, 3.0),
+         relief=(0.5, 150.0)),
 )}
 
 HOLES = (4, 8, 16, 24, 32, 64, 128)
@@ -99,7 +108,8 @@ def make_case(case: Case, work: Path):
             raise SystemExit(f"{case.name}: crop {src.shape} out of {case.path}")
         if nodata is not None:
             src[src == nodata] = np.nan
-        pair = make_pair(src, shape=(case.size, case.size), seed=case.seed, margin=margin, turbulence=case.turbulence)
+        pair = make_pair(src, shape=(case.size, case.size), seed=case.seed, margin=margin, turbulence=case.turbulence,
+                         relief=case.relief)
     base, dist = work / f"{case.name}-base.tif", work / f"{case.name}-dist.tif"
     write_geotiff(base, pair.base, transform=transform, crs=crs)
     write_geotiff(dist, pair.distorted)
