@@ -128,6 +128,15 @@ def test_random_field_affine_max() -> None:
     assert np.hypot(*field.displacement(xx, yy)).max() <= 15.0
 
 
+def _assert_partials(field: WarpField, x: np.ndarray, y: np.ndarray, h: float = 1e-4) -> None:
+    """The analytic partials agree with central differences (away from the turbulence's row kinks)."""
+    gxx, gxy, gyx, gyy = field.partials(x, y)
+    np.testing.assert_allclose(gxx, (field.displacement(x + h, y)[0] - field.displacement(x - h, y)[0]) / (2 * h), atol=1e-7)
+    np.testing.assert_allclose(gxy, (field.displacement(x, y + h)[0] - field.displacement(x, y - h)[0]) / (2 * h), atol=1e-7)
+    np.testing.assert_allclose(gyx, (field.displacement(x + h, y)[1] - field.displacement(x - h, y)[1]) / (2 * h), atol=1e-7)
+    np.testing.assert_allclose(gyy, (field.displacement(x, y + h)[1] - field.displacement(x, y - h)[1]) / (2 * h), atol=1e-7)
+
+
 def test_jacobian_bound_is_a_bound() -> None:
     shape = (200, 150)
     field = WarpField.random(shape, seed=9, turbulence=(1, 3), max_displacement=12.0)
@@ -142,14 +151,7 @@ def test_jacobian_bound_is_a_bound() -> None:
     )
     bound = field.jacobian_bound(shape)
     assert fd <= bound + 1e-6
-    # analytic partials agree with central differences away from row kinks
-    h = 1e-4
-    x, y = xx[::7, ::7] + 0.3, yy[::7, ::7] + 0.4
-    gxx, gxy, gyx, gyy = field.partials(x, y)
-    np.testing.assert_allclose(gxx, (field.displacement(x + h, y)[0] - field.displacement(x - h, y)[0]) / (2 * h), atol=1e-7)
-    np.testing.assert_allclose(gxy, (field.displacement(x, y + h)[0] - field.displacement(x, y - h)[0]) / (2 * h), atol=1e-7)
-    np.testing.assert_allclose(gyx, (field.displacement(x + h, y)[1] - field.displacement(x - h, y)[1]) / (2 * h), atol=1e-7)
-    np.testing.assert_allclose(gyy, (field.displacement(x, y + h)[1] - field.displacement(x, y - h)[1]) / (2 * h), atol=1e-7)
+    _assert_partials(field, xx[::7, ::7] + 0.3, yy[::7, ::7] + 0.4)
 
 
 def test_relief_is_finer_than_a_line_and_leaves_the_rest_of_the_draw_alone() -> None:
@@ -176,13 +178,7 @@ def test_relief_is_finer_than_a_line_and_leaves_the_rest_of_the_draw_alone() -> 
     dx, dy = field.displacement(xx, yy)
     fd = max(np.abs(np.diff(d, axis=a)).max() for d in (dx, dy) for a in (0, 1))
     assert fd <= field.jacobian_bound(shape) + 1e-6
-    h = 1e-4
-    x, y = xx[::7, ::7] + 0.3, yy[::7, ::7] + 0.4
-    gxx, gxy, gyx, gyy = field.partials(x, y)
-    np.testing.assert_allclose(gxx, (field.displacement(x + h, y)[0] - field.displacement(x - h, y)[0]) / (2 * h), atol=1e-7)
-    np.testing.assert_allclose(gxy, (field.displacement(x, y + h)[0] - field.displacement(x, y - h)[0]) / (2 * h), atol=1e-7)
-    np.testing.assert_allclose(gyx, (field.displacement(x + h, y)[1] - field.displacement(x - h, y)[1]) / (2 * h), atol=1e-7)
-    np.testing.assert_allclose(gyy, (field.displacement(x, y + h)[1] - field.displacement(x, y - h)[1]) / (2 * h), atol=1e-7)
+    _assert_partials(field, xx[::7, ::7] + 0.3, yy[::7, ::7] + 0.4)
     px, py = invert(field, xx + dx, yy + dy)
     assert np.abs(px - xx).max() < 1e-8 and np.abs(py - yy).max() < 1e-8
     with pytest.raises(ValueError, match="relief"):

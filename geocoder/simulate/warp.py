@@ -180,18 +180,8 @@ class WarpField:
         return _interp_rows(self.turbulence_x, y), _interp_rows(self.turbulence_y, y)
 
     def relief_part(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Relief-like component of the displacement (sum of plane waves, see ``relief``).
-
-        Parameters
-        ----------
-        x, y : array_like
-            Base pixel coordinates (broadcast against each other).
-
-        Returns
-        -------
-        dx, dy : numpy.ndarray
-            float64 arrays of the broadcast shape.
-        """
+        """Relief-like component of the displacement (sum of plane waves, see ``relief``);
+        arguments and results as :meth:`affine_part`."""
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         dx, dy = np.zeros(x.shape), np.zeros(x.shape)
         for ax, ay, kx, ky, phase in self.relief:
