@@ -65,9 +65,9 @@ def test_georeference_prior_is_corrected_by_phase_correlation():
 @pytest.mark.data
 @pytest.mark.parametrize("angle, start", [(0.5, "translation"), (10.0, "fourier-mellin")])
 def test_fourier_mellin_only_where_a_shift_does_not_correlate(shared_data, angle, start):
-    """Without a georeference a plain shift is tried first; Fourier-Mellin (three quarters of
-    the alignment's time) only where the shift's peak is not decisive. Both ways the affine is
-    found: a half-degree rotation by the local refinement, ten degrees from Fourier-Mellin."""
+    """Without a georeference a plain shift is tried first, and Fourier-Mellin only where the
+    shift's correlation peak is not decisive. Both ways the affine is found: a half-degree
+    rotation by the local refinement, ten degrees from Fourier-Mellin."""
     src = read_band(shared_data / "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif", 1, (200, 1400, 1000, 2200))
     size, origin = 384, (300, 300)
     base = src[origin[0] : origin[0] + size, origin[1] : origin[1] + size].astype(np.float64)
