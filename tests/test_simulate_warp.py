@@ -155,8 +155,8 @@ def test_jacobian_bound_is_a_bound() -> None:
 
 
 def test_relief_is_finer_than_a_line_and_leaves_the_rest_of_the_draw_alone() -> None:
-    """A relief-like term (plane waves of tens of pixels, mostly across the lines) is added
-    after every other draw: without it a seed gives the same field as before it existed; with
+    """A relief-like term (plane waves of tens of pixels, mostly across the lines) is drawn
+    only when asked for: without it a seed gives the same field as before it existed; with
     it the displacement stays within its budget, the partials are its exact derivatives, the
     Jacobian bound holds, and the field inverts."""
     shape = (300, 260)

@@ -408,7 +408,8 @@ class WarpField:
                 raise ValueError(f"turbulence must be (amin, amax) with 0 <= amin <= amax, got {turbulence}")
             tx = _turbulence_profile(h, rng, rng.uniform(amin, amax), turbulence_scale)
             ty = _turbulence_profile(h, rng, rng.uniform(amin, amax), turbulence_scale)
-        turb_peak = float(np.sqrt(tx * tx + ty * ty).max()) if h else 0.0
+        # what the turbulence and the relief take of the displacement budget
+        reserved = float(np.sqrt(tx * tx + ty * ty).max()) if h else 0.0
         waves = np.zeros((0, 5))
         if relief is not None:
             peak, wavelength = (float(r) for r in relief)
@@ -421,11 +422,11 @@ class WarpField:
             direction = rng.uniform(0.0, 2.0 * np.pi, n)
             waves = np.column_stack([amp, amp * rng.uniform(-1.0, 1.0, n) / 3.0, k * np.cos(direction),
                                      k * np.sin(direction), rng.uniform(0.0, 2.0 * np.pi, n)])
-            turb_peak += float(np.hypot(waves[:, 0], waves[:, 1]).sum())
-        budget = max_displacement - turb_peak
+            reserved += float(np.hypot(waves[:, 0], waves[:, 1]).sum())
+        budget = max_displacement - reserved
         if budget <= 0.05 * max_displacement:
             raise ValueError(
-                f"turbulence peak {turb_peak:.3g} px leaves no room within "
+                f"turbulence (and relief) peak {reserved:.3g} px leaves no room within "
                 f"max_displacement={max_displacement}"
             )
 
