@@ -34,6 +34,7 @@ from ..quality.lines import (
     LineCorrection,
     LineOptions,
     combine_sums,
+    estimate_unmatched,
     hole_estimates,
     line_corrections,
     line_sums,
@@ -190,8 +191,7 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     f = zarr.open_group(store, mode="r")["field"][:, r0:r1, a:b]
     dx, dy, px, py, status, _ = field_window(f, mapping, (r0, r1), (a, b))
     sx, sy, rho = f[3], f[4], f[5]
-    holes = _hole_block(np.stack([dx, dy, px, py, status.astype(np.float32), sx, sy]).astype(np.float32),
-                        max_hole=options.max_hole, edge=options.edge)
+    holes = _hole_block(dx, dy, px, py, status, sx, sy, max_hole=options.max_hole, edge=options.edge)
     t = table[:, :, 0].T  # (rows of the block, ROW_TABLE + FIT_TABLE)
     rows = t[:, : len(ROW_TABLE)]
     # the holes from the whole read; the rest only on the columns of the core and of its
@@ -220,12 +220,11 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     return np.stack([dx[core], dy[core], status[core].astype(np.float32), sx[core], sy[core], rho[core]]).astype(np.float32)
 
 
-def _hole_block(stack: np.ndarray, *, max_hole: int, edge: int) -> np.ndarray:
-    dx, dy, px, py, status, sx, sy = stack
+def _hole_block(dx, dy, px, py, status, sx, sy, *, max_hole: int, edge: int) -> np.ndarray:
     usable = (status == Status.MATCHED) | (status == Status.FILLED)
     target = (status == Status.NO_TEXTURE) | (status == Status.BLUNDER)
     cx, cy, nx, ny, ok = hole_estimates(dx - px, dy - py, sx * sx, sy * sy, usable, target, max_hole=max_hole, edge=edge)
-    return np.stack([cx, cy, nx, ny, ok]).astype(np.float32)
+    return np.stack([cx, cy, nx, ny, ok], dtype=np.float32)
 
 
 def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np.ndarray, more=None):
@@ -244,34 +243,14 @@ def _estimates(dx, dy, px, py, status, sx, sy, holes, rows: np.ndarray, part: np
     polynomial alone was 0.7-1.4 px RMSE off (an untextured quarter, the lines' ends),
     0.04-0.09 px.
     """
-    def column(values: np.ndarray) -> np.ndarray:
-        return np.asarray(values, np.float32)[:, None]
-
-    _, _, cx, cy, sgx, sgy = rows.T
     target = (status == Status.NO_TEXTURE) | (status == Status.BLUNDER)
     if more is not None:
         target = target | more
-    # a hole needs its ends' noise or its line's spread for a sigma
-    known = (np.isfinite(holes[2]) & np.isfinite(holes[3])) | (column(np.isfinite(sgx) & np.isfinite(sgy)) > 0)
-    by_hole = target & (holes[4] > 0) & known
-    by_line = target & ~by_hole & (column(np.isfinite(cx) & np.isfinite(cy)) > 0)
-    out = []
-    with np.errstate(invalid="ignore", divide="ignore"):  # inf / inf where a line has no spread: not kept
-        for k, (d, p, corr, sig, s) in enumerate(((dx, px, cx, sgx, sx), (dy, py, cy, sgy, sy))):
-            line = column(np.nan_to_num(corr)) + part[k]
-            spread = column(np.nan_to_num(sig, nan=np.inf)) ** 2  # how far the line is from its estimate
-            noise = holes[2 + k]
-            # how much of the ends' departure from the line's estimate to keep: all of it where the
-            # line is far from it, none where the ends differ from it by their noise only
-            keep = np.where(np.isfinite(spread), spread / np.maximum(spread + noise, 1e-12), 1.0)
-            value = line + keep * (holes[k] - line)
-            out.append(np.where(by_hole, p + value, np.where(by_line, p + line, d)).astype(np.float32))
-            # the posterior variance of the shrunk departure, keep * noise (= (1 - keep) * spread);
-            # with nothing known of the ends' noise (keep = 0), the line's spread
-            hole_sigma = np.sqrt(np.where(keep > 0, keep * noise, spread))
-            out.append(np.where(by_hole, hole_sigma, np.where(by_line, column(sig), s)).astype(np.float32))
-    status = np.where(by_hole | by_line, np.uint8(Status.ESTIMATED), status).astype(np.uint8)
-    return out[0], out[2], out[1], out[3], status
+    out = np.empty((4, *status.shape), np.float32)
+    new_status = status.astype(np.uint8)
+    estimate_unmatched(dx, dy, px, py, sx, sy, holes, np.asarray(rows, np.float64), part, target, out, new_status,
+                       int(Status.ESTIMATED))
+    return out[0], out[1], out[2], out[3], new_status
 
 
 def _smooth_block(stack: np.ndarray, *, window: int, correlation: int) -> np.ndarray:

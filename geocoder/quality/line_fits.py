@@ -15,8 +15,10 @@ Row sums are computed per tile and added over a row band, as in :mod:`geocoder.q
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .shrinkage import random_effects
@@ -262,32 +264,57 @@ def shrink_block(dx: np.ndarray, dy: np.ndarray, px: np.ndarray, py: np.ndarray,
     -------
     dx, dy, sx, sy : ndarray of float32 (h, w)
     """
-    t = np.asarray(table, np.float64)
-    on_fit = np.zeros(np.shape(matched), bool) if filled is None else np.asarray(filled, bool) & (t[:, :1] > 0)
-    uu = np.asarray(u, np.float64)[None, :]
-    powers = [np.ones_like(uu), uu, uu * uu, uu**3, uu**4]
-    out = []
-    for a, (d, p, sig) in enumerate(((dx, px, sx), (dy, py, sy))):
-        d64, s64 = np.asarray(d, np.float64), np.asarray(sig, np.float64)
-        c = t[:, 1 + 3 * a : 4 + 3 * a]
-        fit = c[:, :1] + c[:, 1:2] * uu + c[:, 2:3] * uu * uu
-        s2 = s64 * s64
-        tau2 = t[:, 7 + a : 8 + a]
-        keep = tau2 / np.maximum(tau2 + s2, 1e-300)
-        quartic = sum(t[:, 11 + 5 * a + k : 12 + 5 * a + k] * powers[k] for k in range(5))
-        v_fit = np.minimum(quartic, t[:, 9 + a : 10 + a])
-        value = p + fit + keep * (d64 - p - fit)
-        # value - truth = keep (the match's error) + (1 - keep) (the fit's error - the line's
-        # departure from its fit). A line departs from its fit beyond the matches' noise by relief
-        # or by the matches' own model error (a 7-row template across a jump of the turbulence,
-        # whose sigma does not know it): the kept share of a match counts the departure too, and
-        # sigma is at most the match's with it
-        sigma = np.sqrt(np.minimum(keep * keep * (s2 + tau2) + (1.0 - keep) ** 2 * (v_fit + tau2), s2 + tau2))
-        sel = matched & (t[:, :1] > 0) & np.isfinite(s64) & np.isfinite(d64)
-        value = np.where(on_fit, p + fit, np.where(sel, value, d64))
-        sigma = np.where(on_fit, np.sqrt(v_fit + tau2), np.where(sel, sigma, s64))
-        out += [value.astype(np.float32), sigma.astype(np.float32)]
-    return out[0], out[2], out[1], out[3]
+    h, w = np.shape(matched)
+    on_fit = np.zeros((h, w), bool) if filled is None else np.asarray(filled, bool)
+    out = np.empty((4, h, w), np.float32)
+    _shrink_rows(np.asarray(dx), np.asarray(dy), np.asarray(px), np.asarray(py), np.asarray(matched, bool),
+                 np.asarray(sx), np.asarray(sy), np.asarray(u, np.float64), np.asarray(table, np.float64), on_fit, out)
+    return out[0], out[1], out[2], out[3]
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _minimum(a, b):  # pragma: no cover - compiled
+    """``numpy.minimum`` of two floats: NaN if either is."""
+    return a + b if a != a or b != b else min(a, b)
+
+
+@numba.njit(nogil=True, cache=True)
+def _shrink_rows(dx, dy, px, py, matched, sx, sy, u, t, filled, out):  # pragma: no cover - compiled
+    """:func:`shrink_block` pixel by pixel into ``out`` (dx, dy, sx, sy)."""
+    h, w = matched.shape
+    for r in range(h):
+        fitted = t[r, 0] > 0
+        for a in range(2):
+            d_, p_, s_ = (dx, px, sx) if a == 0 else (dy, py, sy)
+            c0, c1, c2 = t[r, 1 + 3 * a], t[r, 2 + 3 * a], t[r, 3 + 3 * a]
+            tau2 = t[r, 7 + a]
+            spread = t[r, 9 + a]
+            v0, v1, v2, v3, v4 = t[r, 11 + 5 * a], t[r, 12 + 5 * a], t[r, 13 + 5 * a], t[r, 14 + 5 * a], t[r, 15 + 5 * a]
+            for c in range(w):
+                uu = u[c]
+                d = float(d_[r, c])
+                p = float(p_[r, c])
+                s = float(s_[r, c])
+                fit = c0 + c1 * uu + c2 * uu * uu
+                v_fit = _minimum(v0 + v1 * uu + v2 * uu * uu + v3 * uu * uu * uu + v4 * uu * uu * uu * uu, spread)
+                if filled[r, c] and fitted:
+                    value = p + fit
+                    sigma = math.sqrt(v_fit + tau2)
+                elif matched[r, c] and fitted and math.isfinite(s) and math.isfinite(d):
+                    s2 = s * s
+                    keep = tau2 / -_minimum(-(tau2 + s2), -1e-300)
+                    value = p + fit + keep * (d - p - fit)
+                    # value - truth = keep (the match's error) + (1 - keep) (the fit's error - the line's
+                    # departure from its fit). A line departs from its fit beyond the matches' noise by
+                    # relief or by the matches' own model error (a 7-row template across a jump of the
+                    # turbulence, whose sigma does not know it): the kept share of a match counts the
+                    # departure too, and sigma is at most the match's with it
+                    sigma = math.sqrt(_minimum(keep * keep * (s2 + tau2) + (1.0 - keep) ** 2 * (v_fit + tau2), s2 + tau2))
+                else:
+                    value = d
+                    sigma = s
+                out[a, r, c] = value
+                out[2 + a, r, c] = sigma
 
 
 def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -25,6 +25,7 @@ polynomial alone, which cannot know the line's shift.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numba
@@ -403,3 +404,69 @@ def smooth_matches(rx: np.ndarray, ry: np.ndarray, sx: np.ndarray, sy: np.ndarra
         out.append((np.where(ok, value, r0), np.where(ok, sigma, s0)))
     (vx, sgx), (vy, sgy) = out
     return vx, vy, sgx, sgy
+
+
+@numba.njit(nogil=True, cache=True)
+def estimate_unmatched(dx, dy, px, py, sx, sy, holes, rows, part, target, out, status, estimated):  # pragma: no cover - compiled
+    """Every ``target`` pixel of a corrected row estimated, pixel by pixel (the rules are
+    :func:`geocoder.pipeline.lines._estimates`'); the others copied.
+
+    Parameters
+    ----------
+    dx, dy, px, py, sx, sy : float (h, w)
+        The field, the polynomial's displacement and the matches' sigmas.
+    holes : float (5, h, w)
+        :func:`hole_estimates` at every pixel: ``cx, cy, nx, ny, ok``.
+    rows : float64 (h, 6)
+        The rows' ``first, last, cx, cy, sx, sy`` (:func:`line_corrections`).
+    part : float (2, h, w)
+        The smooth part along the lines.
+    target : bool (h, w)
+        The pixels to estimate.
+    out : float32 (4, h, w)
+        Gets ``dx, dy, sigma_x, sigma_y``.
+    status : uint8 (h, w)
+        Set to ``estimated`` where a pixel was.
+    """
+    h, w = target.shape
+    for r in range(h):
+        line_ok = math.isfinite(rows[r, 2]) and math.isfinite(rows[r, 3])
+        spread_ok = math.isfinite(rows[r, 4]) and math.isfinite(rows[r, 5])
+        for c in range(w):
+            if not target[r, c]:
+                out[0, r, c] = dx[r, c]
+                out[1, r, c] = dy[r, c]
+                out[2, r, c] = sx[r, c]
+                out[3, r, c] = sy[r, c]
+                continue
+            # a hole needs its ends' noise or its line's spread for a sigma
+            known = (math.isfinite(holes[2, r, c]) and math.isfinite(holes[3, r, c])) or spread_ok
+            by_hole = holes[4, r, c] > 0 and known
+            by_line = not by_hole and line_ok
+            if by_hole or by_line:
+                status[r, c] = estimated
+            for k in range(2):
+                d = dx[r, c] if k == 0 else dy[r, c]
+                p = px[r, c] if k == 0 else py[r, c]
+                s = sx[r, c] if k == 0 else sy[r, c]
+                corr, sig = rows[r, 2 + k], rows[r, 4 + k]
+                line = (corr if corr == corr else 0.0) + part[k, r, c]
+                spread = sig * sig if sig == sig else math.inf  # how far the line is from its estimate
+                noise = holes[2 + k, r, c]
+                # how much of the ends' departure from the line's estimate to keep: all of it where the
+                # line is far from it, none where the ends differ from it by their noise only
+                keep = 1.0
+                if math.isfinite(spread):
+                    den = spread + noise
+                    keep = spread / (den if den != den or den > 1e-12 else 1e-12)
+                if by_hole:
+                    out[k, r, c] = p + (line + keep * (holes[k, r, c] - line))
+                    # the posterior variance of the shrunk departure, keep * noise (= (1 - keep) * spread);
+                    # with nothing known of the ends' noise (keep = 0), the line's spread
+                    out[2 + k, r, c] = math.sqrt(keep * noise if keep > 0 else spread)
+                elif by_line:
+                    out[k, r, c] = p + line
+                    out[2 + k, r, c] = sig
+                else:
+                    out[k, r, c] = d
+                    out[2 + k, r, c] = s
