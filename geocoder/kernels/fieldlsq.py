@@ -60,7 +60,6 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from scipy.ndimage import uniform_filter
 
 from .alsc import Exit
 from .window_sums import (
@@ -433,18 +432,54 @@ def field_lsq(
     )
 
 
-def _box_count(weight: np.ndarray, rx: int, ry: int) -> np.ndarray:
-    """Share of the template's box around every pixel that is ``weight`` (the denominator of :func:`_box_mean`)."""
-    return uniform_filter(weight.astype(np.float64), size=(2 * ry + 1, 2 * rx + 1), mode="constant")
+@numba.njit(nogil=True, cache=True)
+def box_means(qx, qy, weight, rx, ry):  # pragma: no cover - compiled
+    """Means of ``qx`` and ``qy`` over the ``weight`` pixels of the template's box
+    ((2 ry + 1) x (2 rx + 1), clipped at the border) around every pixel; NaN where it holds none.
 
-
-def _box_mean(q: np.ndarray, weight: np.ndarray, den: np.ndarray, rx: int, ry: int) -> np.ndarray:
-    """Mean of ``q`` over the ``weight`` pixels of the template's box around every pixel (NaN where none);
-    ``den`` is :func:`_box_count` of ``weight``."""
-    size = (2 * ry + 1, 2 * rx + 1)
-    num = uniform_filter(np.where(weight, q, 0.0), size=size, mode="constant")
-    # uniform_filter's running sums leave rounding of ~1e-16 where the box holds no weight
-    return np.where(den > 0.5 / (size[0] * size[1]), num / np.maximum(den, 1e-300), np.nan)
+    Running sums along the rows, then down the columns; the counts are exact integers.
+    """
+    h, w = weight.shape
+    rows = np.empty((3, h, w))
+    for r in range(h):
+        sx = sy = n = 0.0
+        for c in range(-rx, w + rx):
+            enter = c + rx
+            if enter < w and weight[r, enter]:
+                sx += qx[r, enter]
+                sy += qy[r, enter]
+                n += 1.0
+            leave = c - rx - 1
+            if leave >= 0 and weight[r, leave]:
+                sx -= qx[r, leave]
+                sy -= qy[r, leave]
+                n -= 1.0
+            if 0 <= c < w:
+                rows[0, r, c] = sx
+                rows[1, r, c] = sy
+                rows[2, r, c] = n
+    mx = np.empty((h, w))
+    my = np.empty((h, w))
+    acc = np.zeros((3, w))
+    for r in range(-ry, h + ry):
+        enter = r + ry
+        leave = r - ry - 1
+        for c in range(w):
+            if enter < h:
+                for k in range(3):
+                    acc[k, c] += rows[k, enter, c]
+            if leave >= 0:
+                for k in range(3):
+                    acc[k, c] -= rows[k, leave, c]
+            if 0 <= r < h:
+                n = acc[2, c]
+                if n > 0.5:
+                    mx[r, c] = acc[0, c] / n
+                    my[r, c] = acc[1, c] / n
+                else:
+                    mx[r, c] = np.nan
+                    my[r, c] = np.nan
+    return mx, my
 
 
 def round_windows(region, grow: int, rx: int, ry: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -471,12 +506,11 @@ def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill,
     tgy, tgx = np.gradient(t)
     cols = np.arange(w)[None, :]
     rows = np.arange(h)[:, None]
-    den = _box_count(weight, rx, ry)  # the eligible pixels do not change between rounds
     for it in range(iterations):
         grow = 2 * (iterations - 1 - it)
         reg, warp = round_windows(region, grow, rx, ry, (h, w))
-        sx = cols + _box_mean(px - cols, weight, den, rx, ry)
-        sy = rows + _box_mean(py - rows, weight, den, rx, ry)
+        mx, my = box_means(px - cols, py - rows, weight, rx, ry)
+        sx, sy = cols + mx, rows + my
         _warp(d, sx, sy, warp, iw, gxw, gyw)
         _solve_window(t, iw, tgx, tgy, iw, iw, sx, sy, 0.0, 0.0, weight, reg, rx, ry, min_fill, it == iterations - 1,
                       True, sol, stats)

@@ -51,10 +51,9 @@ from .fieldlsq import (
     _SINGULAR,
     FieldLsqResult,
     _accept,
-    _box_count,
-    _box_mean,
     _move,
     _noise_gain,
+    box_means,
     round_windows,
 )
 from .window_sums import (
@@ -281,12 +280,11 @@ def field_lsq_bands(
     r0, r1, c0, c1 = region
     cols = np.arange(w)[None, :]
     rows = np.arange(h)[:, None]
-    den = _box_count(weight, rx, ry)
     for it in range(iterations):
         grow = 2 * (iterations - 1 - it)
         reg, warp = round_windows(region, grow, rx, ry, (h, w))
-        sx = cols + _box_mean(px - cols, weight, den, rx, ry)
-        sy = rows + _box_mean(py - rows, weight, den, rx, ry)
+        mx, my = box_means(px - cols, py - rows, weight, rx, ry)
+        sx, sy = cols + mx, rows + my
         for b in range(nb):
             _warp(d[b], sx, sy, warp, iw[b], gxw, gyw)
         _solve_window_bands(t, iw, tgx, tgy, sx, sy, weight, reg, rx, ry, min_fill, it == iterations - 1, sol, stats)
