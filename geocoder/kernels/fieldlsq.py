@@ -389,8 +389,9 @@ def field_lsq(
     weight = np.asarray(eligible, dtype=np.bool_) & np.isfinite(px) & np.isfinite(py)
     cols = np.arange(w)[None, :]
     rows = np.arange(h)[:, None]
-    qx = float(np.median((px - cols)[weight])) if weight.any() else 0.0
-    qy = float(np.median((py - rows)[weight])) if weight.any() else 0.0
+    # the image design is linearised about the field's median offset (not used by the template's)
+    qx = float(np.median((px - cols)[weight])) if weight.any() and not template else 0.0
+    qy = float(np.median((py - rows)[weight])) if weight.any() and not template else 0.0
     iw = np.full((h, w), np.nan)
     gxw = np.full((h, w), np.nan)
     gyw = np.full((h, w), np.nan)
