@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from scipy import ndimage
 
 # Defaults of the operator and the point selection (seed 000 sec. 4.4.1), defined once here and
 # used by :class:`geocoder.pipeline.detect.InterestOptions`.
@@ -233,6 +232,31 @@ def _strict_maxima(w, rows, cols, radius, row0, col0, width):
     return keep
 
 
+@numba.njit(nogil=True, cache=True)
+def _local_maxima(w, r0, r1, c0, c1):
+    """Pixels of ``w[r0:r1, c0:c1]`` (raster order, block coordinates) above 0 and at least as
+    large as each of their 8 neighbours (outside the block counts as 0)."""
+    h, wd = w.shape
+    rows = np.empty((r1 - r0) * (c1 - c0), np.int64)
+    cols = np.empty_like(rows)
+    n = 0
+    for r in range(r0, r1):
+        for c in range(c0, c1):
+            v = w[r, c]
+            if not v > 0:
+                continue
+            top = True
+            for rr in range(max(r - 1, 0), min(r + 2, h)):
+                for cc in range(max(c - 1, 0), min(c + 2, wd)):
+                    if w[rr, cc] > v:
+                        top = False
+            if top:
+                rows[n] = r
+                cols[n] = c
+                n += 1
+    return rows[:n].copy(), cols[:n].copy()
+
+
 def select_points(
     w: np.ndarray,
     q: np.ndarray,
@@ -282,12 +306,11 @@ def select_points(
     # neighbours: that cheap test (exact, outside the block counts as 0 as in
     # _strict_maxima) leaves the full window test to a few candidates
     if radius >= 1:
-        near = ndimage.maximum_filter(interest, size=3, mode="constant", cval=0.0)
-        rows, cols = np.nonzero((interest[r0:r1, c0:c1] > 0) & (interest[r0:r1, c0:c1] >= near[r0:r1, c0:c1]))
+        rows, cols = _local_maxima(interest, r0, r1, c0, c1)
     else:
         rows, cols = np.nonzero(interest[r0:r1, c0:c1])
-    rows = (rows + r0).astype(np.int64)
-    cols = (cols + c0).astype(np.int64)
+        rows = (rows + r0).astype(np.int64)
+        cols = (cols + c0).astype(np.int64)
     width = int(width if width is not None else w.shape[1])
     keep = _strict_maxima(interest, rows, cols, int(radius), int(origin[0]), int(origin[1]), width)
     rows, cols = rows[keep], cols[keep]
