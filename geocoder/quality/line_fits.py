@@ -278,6 +278,12 @@ def _minimum(a, b):  # pragma: no cover - compiled
     return a + b if a != a or b != b else min(a, b)
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _maximum(a, b):  # pragma: no cover - compiled
+    """``numpy.maximum`` of two floats: NaN if either is."""
+    return a + b if a != a or b != b else max(a, b)
+
+
 @numba.njit(nogil=True, cache=True)
 def _shrink_rows(dx, dy, px, py, matched, sx, sy, u, t, filled, out):  # pragma: no cover - compiled
     """:func:`shrink_block` pixel by pixel into ``out`` (dx, dy, sx, sy)."""
@@ -302,7 +308,7 @@ def _shrink_rows(dx, dy, px, py, matched, sx, sy, u, t, filled, out):  # pragma:
                     sigma = math.sqrt(v_fit + tau2)
                 elif matched[r, c] and fitted and math.isfinite(s) and math.isfinite(d):
                     s2 = s * s
-                    keep = tau2 / -_minimum(-(tau2 + s2), -1e-300)
+                    keep = tau2 / _maximum(tau2 + s2, 1e-300)
                     value = p + fit + keep * (d - p - fit)
                     # value - truth = keep (the match's error) + (1 - keep) (the fit's error - the line's
                     # departure from its fit). A line departs from its fit beyond the matches' noise by

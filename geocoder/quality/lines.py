@@ -457,8 +457,8 @@ def estimate_unmatched(dx, dy, px, py, sx, sy, holes, rows, part, target, out, s
                 # line is far from it, none where the ends differ from it by their noise only
                 keep = 1.0
                 if math.isfinite(spread):
-                    den = spread + noise
-                    keep = spread / (den if den != den or den > 1e-12 else 1e-12)
+                    den = spread + noise  # NaN where the ends' noise is not known: keep NaN, sigma the spread
+                    keep = spread / (den if not den < 1e-12 else 1e-12)
                 if by_hole:
                     out[k, r, c] = p + (line + keep * (holes[k, r, c] - line))
                     # the posterior variance of the shrunk departure, keep * noise (= (1 - keep) * spread);
