@@ -16,6 +16,7 @@ from geocoder.kernels.alsc import (
     alsc,
     alsc_point,
     gradients,
+    samples,
 )
 from geocoder.kernels.alsc_reference import alsc_reference
 
@@ -297,7 +298,7 @@ def test_far_start_is_not_accepted(scene: Scene) -> None:
 
 
 @numba.njit(nogil=True)
-def _match_from_numba(base, dist, gx, gy, cols, rows, init, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
+def _match_from_numba(base, table, cols, rows, init, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
                       max_sigma, min_det):
     n = cols.shape[0]
     fields = np.empty((n, 12))
@@ -307,7 +308,7 @@ def _match_from_numba(base, dist, gx, gy, cols, rows, init, radius, radius_y, cu
     for i in range(n):
         for j in range(8):
             start[j] = init[i, j]
-        codes[i] = alsc_point(base, dist, gx, gy, cols[i], rows[i], start, out, radius, radius_y, cubic, max_iter, tol,
+        codes[i] = alsc_point(base, table, cols[i], rows[i], start, out, radius, radius_y, cubic, max_iter, tol,
                               max_shift, min_rho, max_sigma, min_det)
         fields[i] = out
     return fields, codes
@@ -318,9 +319,8 @@ def test_callable_from_numba(scene: Scene) -> None:
     init = _start(scene.truth(cols, rows), offset=0.5, seed=7)
     base = scene.base.astype(np.float32)
     dist = scene.dist.astype(np.float32)
-    gx, gy = gradients(dist)
     options = AlscOptions()
-    fields, codes = _match_from_numba(base, dist, gx, gy, cols, rows, init, *options.kernel_args())
+    fields, codes = _match_from_numba(base, samples(dist), cols, rows, init, *options.kernel_args())
     res = alsc(base, dist, cols, rows, init, options=options)
     np.testing.assert_array_equal(codes, res.exit)
     for k in range(cols.size):
@@ -345,6 +345,23 @@ def test_gradients() -> None:
     assert np.isfinite(gx[3, 6]) and np.isfinite(gy[4, 5])
     with pytest.raises(ValueError):
         gradients(np.zeros(5))
+
+
+def test_samples_interleave_value_and_gradients() -> None:
+    bands = np.random.default_rng(9).normal(size=(2, 9, 12))
+    bands[1, 4, 6] = np.nan
+    table = samples(bands)
+    assert table.shape == (2, 9, 12, 4) and table.dtype == np.float32
+    for b in range(2):
+        # exactly the float32 window and its gradients() (the kernels' sums depend on every bit)
+        gx, gy = gradients(bands[b].astype(np.float32))
+        np.testing.assert_array_equal(table[b, ..., 0], bands[b].astype(np.float32))
+        np.testing.assert_array_equal(table[b, ..., 1], gx)
+        np.testing.assert_array_equal(table[b, ..., 2], gy)
+        assert (table[b, ..., 3] == 0).all()
+    np.testing.assert_array_equal(samples(bands[0]), table[0])
+    with pytest.raises(ValueError, match="2x2"):
+        samples(np.zeros((1, 5)))
 
 
 def test_validation(scene: Scene) -> None:
@@ -377,13 +394,13 @@ def test_validation(scene: Scene) -> None:
 def _step_many(base, dist, cols, rows, init, options, step_tol):
     from geocoder.kernels.alsc import alsc_step
 
-    gx, gy = gradients(dist)
+    table = samples(dist)
     out = np.empty((cols.size, len(FIELDS)))
     codes = np.empty(cols.size, dtype=np.int64)
     for k in range(cols.size):
         o = options
         codes[k] = alsc_step(
-            base, dist, gx, gy, int(cols[k]), int(rows[k]), init[k], out[k], int(o.radius), o.ry,
+            base, table, int(cols[k]), int(rows[k]), init[k], out[k], int(o.radius), o.ry,
             o.interpolation == "cubic", step_tol, float(o.max_shift), float(o.min_rho), float(o.max_sigma),
             float(o.min_det),
         )
@@ -465,7 +482,7 @@ def test_fill_matches_reference_and_truth(scene: Scene) -> None:
     region = (150, 156, 121, 200)
     p_ref, c_ref = fill_reference(base, dist, params, code, region, options=options, col_step=k, step_tol=0.05)
     p_new, c_new = params.copy(), code.copy()
-    new = fill_window(base, dist, gradients(dist), p_new, c_new, region, options=options, col_step=k, step_tol=0.05)
+    new = fill_window(base, dist, p_new, c_new, region, options=options, col_step=k, step_tol=0.05)
     np.testing.assert_array_equal(c_new, c_ref)
     np.testing.assert_allclose(p_new, p_ref, rtol=1e-6, atol=1e-6, equal_nan=True)
     filled = (c_new == 0) & (code != 0)
@@ -490,13 +507,12 @@ def test_fill_does_not_depend_on_the_split(scene: Scene) -> None:
     options = AlscOptions(radius=7)
     k = 4
     base, dist, params, code = _lattice_state(scene, k, options)
-    grad = gradients(dist)
     whole_p, whole_c = params.copy(), code.copy()
-    fill_window(base, dist, grad, whole_p, whole_c, (150, 156, 121, 200), options=options, col_step=k)
+    fill_window(base, dist, whole_p, whole_c, (150, 156, 121, 200), options=options, col_step=k)
     # two parts (as two tiles would), in either order: the same result
     for parts in (((121, 163), (163, 200)), ((163, 200), (121, 163))):
         p, c = params.copy(), code.copy()
         for c0, c1 in parts:
-            fill_window(base, dist, grad, p, c, (150, 156, c0, c1), options=options, col_step=k)
+            fill_window(base, dist, p, c, (150, 156, c0, c1), options=options, col_step=k)
         np.testing.assert_array_equal(c, whole_c)
         np.testing.assert_array_equal(p, whole_p)

@@ -10,7 +10,7 @@ import pytest
 from conftest import read_band
 from scipy.ndimage import gaussian_filter
 
-from geocoder.kernels.alsc import NFIELDS, AlscOptions, alsc_point, gradients
+from geocoder.kernels.alsc import NFIELDS, AlscOptions, alsc_point, samples
 from geocoder.kernels.alsc_bands import alsc_point_bands, band_scales
 from geocoder.kernels.fieldlsq import field_lsq
 from geocoder.kernels.fieldlsq_bands import field_lsq_bands
@@ -52,17 +52,17 @@ def test_band_scales_give_unit_noise():
 
 
 @numba.njit
-def _points_bands(base, dist, gx, gy, cols, rows, init, out, codes, radius, radius_y, tol):
+def _points_bands(base, table, cols, rows, init, out, codes, radius, radius_y, tol):
     for i in range(cols.shape[0]):
-        codes[i] = alsc_point_bands(base, dist, gx, gy, cols[i], rows[i], init[i], out[i], radius, radius_y, False, 30,
-                                    tol, 0.5, 0.7, 0.1, 0.5)
+        codes[i] = alsc_point_bands(base, table, cols[i], rows[i], init[i], out[i], radius, radius_y, False, 30, tol,
+                                    0.5, 0.7, 0.1, 0.5)
 
 
 @numba.njit
-def _points(base, dist, gx, gy, cols, rows, init, out, codes, radius, radius_y, tol):
+def _points(base, table, cols, rows, init, out, codes, radius, radius_y, tol):
     for i in range(cols.shape[0]):
-        codes[i] = alsc_point(base, dist, gx, gy, cols[i], rows[i], init[i], out[i], radius, radius_y, False, 30, tol,
-                              0.5, 0.7, 0.1, 0.5)
+        codes[i] = alsc_point(base, table, cols[i], rows[i], init[i], out[i], radius, radius_y, False, 30, tol, 0.5,
+                              0.7, 0.1, 0.5)
 
 
 def _lattice(case, bands):
@@ -73,21 +73,18 @@ def _lattice(case, bands):
     init[:, 0], init[:, 1] = x0[rows, cols], y0[rows, cols]
     init[:, 2] = init[:, 5] = init[:, 7] = 1.0
     b, d = np.ascontiguousarray(base[bands]), np.ascontiguousarray(dist[bands])
-    g = [gradients(band) for band in d]
-    gx, gy = np.stack([a[0] for a in g]), np.stack([a[1] for a in g])
     out = np.empty((rows.size, NFIELDS))
     codes = np.empty(rows.size, np.int64)
-    _points_bands(b, d, gx, gy, cols, rows, init, out, codes, 25, 3, 1e-3)
+    _points_bands(b, samples(d), cols, rows, init, out, codes, 25, 3, 1e-3)
     return rows, cols, init, out, codes
 
 
 def test_one_band_is_alsc_point(case):
     rows, cols, init, out, codes = _lattice(case, [1])
     base, dist = case[0], case[1]
-    gx, gy = gradients(dist[1])
     ref = np.empty_like(out)
     ref_codes = np.empty_like(codes)
-    _points(base[1], dist[1], gx, gy, cols, rows, init, ref, ref_codes, 25, 3, 1e-3)
+    _points(base[1], samples(dist[1]), cols, rows, init, ref, ref_codes, 25, 3, 1e-3)
     assert (codes == ref_codes).all()
     np.testing.assert_allclose(out[:, :11], ref[:, :11], rtol=1e-8, atol=1e-8, equal_nan=True)
 

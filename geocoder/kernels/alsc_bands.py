@@ -113,8 +113,7 @@ def _template_stats(base, col, row, rx, ry):  # pragma: no cover - compiled
 
 @numba.njit(nogil=True, cache=True)
 def alsc_point_bands(
-    base, dist, grad_x, grad_y, col, row, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
-    max_sigma, min_det,
+    base, dist, col, row, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma, min_det,
 ):  # pragma: no cover - compiled
     """Multispectral least-squares match of one template; returns the exit code.
 
@@ -122,8 +121,8 @@ def alsc_point_bands(
     ----------
     base : ndarray of float32, shape (n, H, W)
         Base window, ``n`` bands.
-    dist, grad_x, grad_y : ndarray of float32, shape (n, H', W')
-        Distorted window's bands and their gradients (:func:`geocoder.kernels.alsc.gradients` of each).
+    dist : ndarray of float32, shape (n, H', W', 4)
+        Distorted window's bands with their gradients (:func:`geocoder.kernels.alsc.samples`).
     col, row, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma, min_det
         As for :func:`geocoder.kernels.alsc.alsc_point`. ``init``'s offset and gain start every
         band; ``out``'s are the bands' means.
@@ -193,7 +192,7 @@ def alsc_point_bands(
         for b in range(nb):
             geo[6] = rad[b, 0]
             geo[7] = rad[b, 1]
-            if not _moments(base[b], dist[b], grad_x[b], grad_y[b], col, row, geo, rx, ry, cubic, tmean[b], mom[b]):
+            if not _moments(base[b], dist[b], col, row, geo, rx, ry, cubic, tmean[b], mom[b]):
                 outside = True
                 break
             _normal_equations(mom[b], rad[b, 1], npix, nmat, rhs)

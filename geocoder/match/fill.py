@@ -22,7 +22,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..kernels.alsc import F_A11, F_A21, F_X, F_Y, NFIELDS, NPARAMS, AlscOptions, Exit, alsc_point, alsc_step
+from ..kernels.alsc import F_A11, F_A21, F_X, F_Y, NFIELDS, NPARAMS, AlscOptions, Exit, alsc_point, alsc_step, samples
 
 __all__ = ["fill_lines", "fill_window", "fill_reference"]
 
@@ -32,14 +32,15 @@ _NOT_CONVERGED = int(Exit.NOT_CONVERGED)
 
 @numba.njit(nogil=True, cache=True)
 def fill_lines(
-    base, dist, grad_x, grad_y, params, code, region, col_step, col_origin, step_tol, radius, radius_y, cubic,
+    base, dist, params, code, region, col_step, col_origin, step_tol, radius, radius_y, cubic,
     max_iter, tol, max_shift, min_rho, max_sigma, min_det,
 ):  # pragma: no cover - compiled
     """Match the pixels between lattice columns inside ``region``; returns the number of new matches.
 
     Parameters
     ----------
-    base, dist, grad_x, grad_y : 2-D float32 windows (see :func:`~geocoder.kernels.alsc.alsc_point`).
+    base, dist : float32 windows (see :func:`~geocoder.kernels.alsc.alsc_point`): the base (h, w)
+        and the distorted window with its gradients (h', w', 4).
     params : float64 (h, w, NFIELDS)
         ALSC fields of the window (positions in the distorted window's frame); the lattice
         columns hold the matches of the region growing; filled in place.
@@ -73,13 +74,13 @@ def fill_lines(
                 for j in range(NPARAMS):
                     init[j] = (1.0 - wr) * params[r, cl, j] + wr * params[r, cr, j]
                 e = alsc_step(
-                    base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, step_tol, max_shift,
-                    min_rho, max_sigma, min_det,
+                    base, dist, c, r, init, out, radius, radius_y, cubic, step_tol, max_shift, min_rho, max_sigma,
+                    min_det,
                 )
                 if e == _NOT_CONVERGED:
                     e = alsc_point(
-                        base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol,
-                        max_shift, min_rho, max_sigma, min_det,
+                        base, dist, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
+                        max_sigma, min_det,
                     )
             elif left or right:
                 pc = cl if left else cr
@@ -89,8 +90,8 @@ def fill_lines(
                 for j in range(F_A11, NPARAMS):
                     init[j] = params[r, pc, j]
                 e = alsc_point(
-                    base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift,
-                    min_rho, max_sigma, min_det,
+                    base, dist, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
+                    max_sigma, min_det,
                 )
             else:
                 continue
@@ -105,7 +106,6 @@ def fill_lines(
 def fill_window(
     base: np.ndarray,
     dist: np.ndarray,
-    grad: tuple[np.ndarray, np.ndarray],
     params: np.ndarray,
     code: np.ndarray,
     region: tuple[int, int, int, int],
@@ -115,14 +115,15 @@ def fill_window(
     col_origin: int = 0,
     step_tol: float = 0.02,
 ) -> int:
-    """Python entry to :func:`fill_lines` with options unpacked; returns the number of new matches."""
+    """Python entry to :func:`fill_lines` with options unpacked; returns the number of new matches.
+
+    ``base`` and ``dist`` are 2-D windows; the gradients of ``dist`` are made here.
+    """
     if col_step < 2:
         return 0
     return int(
         fill_lines(
-            np.ascontiguousarray(base, dtype=np.float32), np.ascontiguousarray(dist, dtype=np.float32),
-            np.ascontiguousarray(grad[0], dtype=np.float32), np.ascontiguousarray(grad[1], dtype=np.float32),
-            params, code, np.asarray(region, dtype=np.int64), int(col_step), int(col_origin), float(step_tol),
+            np.ascontiguousarray(base, dtype=np.float32), samples(dist), params, code, np.asarray(region, dtype=np.int64), int(col_step), int(col_origin), float(step_tol),
             *options.kernel_args(),
         )
     )

@@ -33,6 +33,7 @@ from ..kernels.alsc import (
     AlscOptions,
     Exit,
     alsc_point,
+    samples,
 )
 from ..kernels.alsc_bands import alsc_point_bands
 
@@ -104,13 +105,13 @@ def _heap_pop(keys, items, parents, size):
 
 
 @numba.njit(nogil=True, cache=True)
-def _match(base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
-           max_sigma, min_det):  # pragma: no cover - compiled
+def _match(base, dist, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma,
+           min_det):  # pragma: no cover - compiled
     if base.shape[0] == 1:
-        return alsc_point(base[0], dist[0], grad_x[0], grad_y[0], c, r, init, out, radius, radius_y, cubic, max_iter,
-                          tol, max_shift, min_rho, max_sigma, min_det)
-    return alsc_point_bands(base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol,
-                            max_shift, min_rho, max_sigma, min_det)
+        return alsc_point(base[0], dist[0], c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift,
+                          min_rho, max_sigma, min_det)
+    return alsc_point_bands(base, dist, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
+                            max_sigma, min_det)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -120,7 +121,7 @@ def _quality(p):
 
 @numba.njit(nogil=True, cache=True)
 def grow(
-    base, dist, grad_x, grad_y, seeds, params, code, tries, region, step, lattice_origin,
+    base, dist, seeds, params, code, tries, region, step, lattice_origin,
     neighbours, max_tries, col_step, param_stride, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma,
     min_det,
 ):
@@ -128,9 +129,12 @@ def grow(
 
     Parameters
     ----------
-    base, dist, grad_x, grad_y : 3-D float32 windows (bands, rows, cols) (see
-        :func:`~geocoder.kernels.alsc.alsc_point`); with several bands every match is on all of
-        them at once (:func:`~geocoder.kernels.alsc_bands.alsc_point_bands`).
+    base : float32 (bands, rows, cols)
+        Base window.
+    dist : float32 (bands, rows, cols, 4)
+        Distorted window with its gradients (:func:`~geocoder.kernels.alsc.samples`); with
+        several bands every match is on all of them at once
+        (:func:`~geocoder.kernels.alsc_bands.alsc_point_bands`).
     seeds : float64 (k, SEED_WIDTH)
         Rows of :data:`SEED_COLUMNS`: ``row, col`` (base window) then the start parameters
         (distorted window frame).
@@ -177,8 +181,7 @@ def grow(
         if (r - lattice_origin[0]) % step != 0 or (c - lattice_origin[1]) % step != 0:
             continue
         e = _match(
-            base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
-            max_sigma, min_det,
+            base, dist, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma, min_det,
         )
         code[r, c] = e
         if e == _ACCEPTED:
@@ -201,8 +204,8 @@ def grow(
                 init[j] = p[j]
             tries[r, c] += 1
             e = _match(
-                base, dist, grad_x, grad_y, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift,
-                min_rho, max_sigma, min_det,
+                base, dist, c, r, init, out, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma,
+                min_det,
             )
             code[r, c] = e
             if e != _ACCEPTED:
@@ -225,7 +228,6 @@ def grow(
 def grow_window(
     base: np.ndarray,
     dist: np.ndarray,
-    grad: tuple[np.ndarray, np.ndarray],
     seeds: np.ndarray,
     params: np.ndarray,
     code: np.ndarray,
@@ -242,8 +244,8 @@ def grow_window(
     """Python entry to :func:`grow` with options unpacked; returns the number of new matches.
 
     ``params`` holds every ``param_stride``-th column of the window (see :func:`grow`).
-    ``base``, ``dist`` and ``grad`` are one band (2-D) or several (3-D, bands first: matched
-    on all of them at once).
+    ``base`` and ``dist`` are one band (2-D) or several (3-D, bands first: matched on all of
+    them at once); the gradients of ``dist`` are made here (:func:`~geocoder.kernels.alsc.samples`).
     """
     if param_stride > 1 and (step * col_step) % param_stride:
         raise ValueError(f"param_stride {param_stride} must divide the lattice's column spacing {step * col_step}")
@@ -257,8 +259,7 @@ def grow_window(
 
     return int(
         grow(
-            bands(base), bands(dist), bands(grad[0]), bands(grad[1]),
-            np.ascontiguousarray(seeds, dtype=np.float64), params, code, tries,
+            bands(base), samples(bands(dist)), np.ascontiguousarray(seeds, dtype=np.float64), params, code, tries,
             np.asarray(region, dtype=np.int64), int(step), np.asarray(lattice_origin, dtype=np.int64),
             offsets, int(max_tries), int(col_step), int(param_stride), *o.kernel_args(),
         )

@@ -7,9 +7,7 @@ from dataclasses import dataclass
 import dask
 import numpy as np
 
-from ..kernels.alsc import gradients
-
-__all__ = ["Bands", "band_windows", "window_gradients"]
+__all__ = ["Bands", "band_windows"]
 
 
 @dataclass(frozen=True)
@@ -61,10 +59,3 @@ def band_windows(base: np.ndarray, dist: np.ndarray, band: int, dist_band: int,
         return base[band], dist[dist_band]
     return bands.pick(base, bands.base_scales), bands.pick(dist, bands.dist_scales)
 
-
-def window_gradients(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`geocoder.kernels.alsc.gradients` of one band, or stacked for each of several."""
-    if dist.ndim == 2:
-        return gradients(dist)
-    each = [gradients(b) for b in dist]
-    return np.stack([g[0] for g in each]), np.stack([g[1] for g in each])

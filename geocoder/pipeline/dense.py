@@ -46,7 +46,6 @@ from ..kernels.alsc import (
     FIELDS,
     NPARAMS,
     AlscOptions,
-    gradients,
 )
 from ..kernels.polynomial import PolyMap
 from ..match.densify import densify_window, lattice_start
@@ -55,7 +54,7 @@ from ..match.grow import NFIELDS, SEED_COL, SEED_ROW, SEED_WIDTH, SEED_X, SEED_Y
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
 from ..tiles import Tile, TileGrid, Window
-from .bands import Bands, band_windows, window_gradients
+from .bands import Bands, band_windows
 from .correspond import distorted_window
 from .job import Job, run_tiles
 
@@ -307,7 +306,6 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     dr0, dc0 = dwin[0], dwin[2]
     base, dist = band_windows(base_reader.read(wr0, rr1 + pad, wc0, rc1 + pad), dist_reader.read(*dwin), band, dist_band,
                           bands)
-    grad = window_gradients(dist)
     # window state: the core's earlier matches, nothing in the halo; ``params`` holds the
     # lattice's columns only when the state does (every k-th, from the core's first)
     params, p0, (cr, cc) = _param_window(base.shape[-2:], k, wc0), -wc0 % k, (tile.row0 - wr0, tile.col0 - wc0)
@@ -328,7 +326,7 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     local[:, SEED_X] -= dc0
     local[:, SEED_Y] -= dr0
     region = (rr0 - wr0, rr1 - wr0, rc0 - wc0, rc1 - wc0)
-    new = grow_window(base, dist, grad, local, params, code, region, options=opts.growth_alsc, step=opts.step,
+    new = grow_window(base, dist, local, params, code, region, options=opts.growth_alsc, step=opts.step,
                       lattice_origin=(-wr0 % opts.step, -wc0 % (opts.step * opts.col_step)), neighbours=opts.neighbours,
                       max_tries=opts.max_tries, col_step=opts.col_step, param_stride=k)
     if new == 0:
@@ -450,7 +448,6 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
     dwin = distorted_window(tile, mapping, opts.margin + 2 * max(opts.alsc.radius, opts.alsc.ry))
     dr0, dc0 = dwin[0], dwin[2]
     dist = dist_reader.read(*dwin)[dist_band]
-    grad = gradients(dist)
     params = np.full((*base.shape, NFIELDS), np.nan)
     code = np.full(base.shape, UNVISITED, dtype=np.int8)
     ssl = (slice(tile.row0 - wr0, tile.row1 - wr0), slice(sc0 - wc0, sc1 - wc0))
@@ -460,7 +457,7 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
     win[..., 1] += (np.arange(tile.row0, tile.row1) - dr0)[:, None]
     code[ssl] = scode
     region = (tile.row0 - wr0, tile.row1 - wr0, tile.col0 - wc0, tile.col1 - wc0)
-    new = fill_window(base, dist, grad, params, code, region, options=opts.alsc, col_step=k,
+    new = fill_window(base, dist, params, code, region, options=opts.alsc, col_step=k,
                       col_origin=(-wc0) % k, step_tol=opts.fill_step_tol)
     csl = (slice(region[0], region[1]), slice(region[2], region[3]))
     out = np.moveaxis(params[csl], -1, 0).astype(np.float32)
