@@ -115,50 +115,59 @@ def _foerstner_kernel(img, window, w, q):  # pragma: no cover - compiled
 
     Box sums are separable: first along columns over ``n - 1`` quad rows, then along rows,
     each a plain sum of ``n - 1`` terms (no running sums, so no dependence on the origin).
+    The quad products live in a ring of ``n - 1`` rows and the column sums in one row, so
+    the work arrays stay in cache whatever the image size.
     """
     h, wd = img.shape
     n = window - 1
     k = window // 2
     qh, qw = h - 1, wd - 1
-    prod = np.zeros((4, qh, qw))  # gx^2, gy^2, gx gy, bad
-    for r in range(qh):
-        for c in range(qw):
-            a = img[r, c]
-            b = img[r, c + 1]
-            cc = img[r + 1, c]
-            d = img[r + 1, c + 1]
-            gx = 0.5 * ((b - a) + (d - cc))
-            gy = 0.5 * ((cc - a) + (d - b))
-            if not (math.isfinite(gx) and math.isfinite(gy)):
-                prod[3, r, c] = 1.0
-            else:
-                prod[0, r, c] = gx * gx
-                prod[1, r, c] = gy * gy
-                prod[2, r, c] = gx * gy
-    oh = qh - n + 1
-    col = np.zeros((4, oh, qw))
-    for m in range(4):
-        for r in range(oh):
-            for c in range(qw):
-                acc = 0.0
-                for i in range(n):
-                    acc += prod[m, r + i, c]
-                col[m, r, c] = acc
+    ring = np.zeros((n, 4, qw))  # quad rows r .. r + n - 1 at slot row % n: gx^2, gy^2, gx gy, bad
     ow = qw - n + 1
-    for r in range(oh):
-        for c in range(ow):
-            sxx = 0.0
-            syy = 0.0
-            sxy = 0.0
-            nbad = 0.0
+    col = np.empty((4, qw))  # sums over the ring's rows
+    box = np.empty((4, ow))  # and along them
+    for r in range(qh - n + 1):
+        first = r if r == 0 else r + n - 1  # the quad rows that enter the ring now
+        for qr in range(first, r + n):
+            prod = ring[qr % n]
+            for c in range(qw):
+                a = img[qr, c]
+                b = img[qr, c + 1]
+                cc = img[qr + 1, c]
+                d = img[qr + 1, c + 1]
+                gx = 0.5 * ((b - a) + (d - cc))
+                gy = 0.5 * ((cc - a) + (d - b))
+                if not (math.isfinite(gx) and math.isfinite(gy)):
+                    prod[0, c] = 0.0
+                    prod[1, c] = 0.0
+                    prod[2, c] = 0.0
+                    prod[3, c] = 1.0
+                else:
+                    prod[0, c] = gx * gx
+                    prod[1, c] = gy * gy
+                    prod[2, c] = gx * gy
+                    prod[3, c] = 0.0
+        # the same additions in the same order per pixel as plain loops over i and j, but
+        # with the pixels innermost, so that they vectorise
+        for m in range(4):
+            for c in range(qw):
+                col[m, c] = 0.0
+            for i in range(n):
+                src = ring[(r + i) % n, m]
+                for c in range(qw):
+                    col[m, c] += src[c]
+            for c in range(ow):
+                box[m, c] = 0.0
             for j in range(n):
-                sxx += col[0, r, c + j]
-                syy += col[1, r, c + j]
-                sxy += col[2, r, c + j]
-                nbad += col[3, r, c + j]
+                for c in range(ow):
+                    box[m, c] += col[m, c + j]
+        for c in range(ow):
+            sxx = box[0, c]
+            syy = box[1, c]
+            sxy = box[2, c]
             det = sxx * syy - sxy * sxy
             tr = sxx + syy
-            if nbad < 0.5 and tr > 0 and det > 0:
+            if box[3, c] < 0.5 and tr > 0 and det > 0:
                 w[r + k, c + k] = det / tr
                 q[r + k, c + k] = 4.0 * det / (tr * tr)
 
