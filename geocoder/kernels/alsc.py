@@ -60,7 +60,8 @@ The module is over 500 lines because its numba kernels are one algorithm: the mo
 (bilinear and cubic, each written out branch-free so that LLVM vectorises it), the normal
 equations, the factorisation and the two drivers share the moment vector's layout and the
 exit codes as compile-time constants, and splitting them would only scatter that layout;
-the public side (options, result, :func:`alsc`, :func:`gradients`, :func:`samples`) is the last ~200 lines.
+the public side (options, result, :func:`alsc`, :func:`gradients`, :func:`samples`) is the last
+~200 lines.
 
 References
 ----------
@@ -186,13 +187,14 @@ _PAIR = ((0, 1, 2), (1, 3, 4), (2, 4, 5))
 
 # Bilinear moments in two passes per template row: the samples (bilinear value and gradients,
 # residual, template) into a small row buffer, then the sums over the buffer in three short
-# loops. Each tap is one 16-byte record (value, gx, gy, 0) of the table made by ``samples``:
-# one load where three separate arrays needed three (~18 % per evaluation, same sums). Split so, the sampling loop's gathers and the sums' accumulators no longer compete
-# for registers (~20 % faster than one fused loop, bit for bit the same sums). The bounds and
-# finiteness tests are folded into flags checked once per row, indices are clamped so every
-# load stays inside the window; only ``contract`` and ``reassoc`` fast-math flags, so NaN and
-# infinity keep their IEEE meaning. The summation order is fixed at compile time: results are
-# deterministic and do not depend on the tile.
+# loops. Split so, the sampling loop's gathers and the sums' accumulators no longer compete
+# for registers (~20 % faster than one fused loop, bit for bit the same sums). Each tap is one
+# 16-byte record (value, gx, gy, 0) of the table made by ``samples``: one load where three
+# arrays needed three (~18 % per evaluation, the same sums). The bounds and finiteness tests
+# are folded into flags checked once per row, indices are clamped so every load stays inside
+# the window; only ``contract`` and ``reassoc`` fast-math flags, so NaN and infinity keep their
+# IEEE meaning. The summation order is fixed at compile time: results are deterministic and do
+# not depend on the tile.
 @numba.njit(nogil=True, cache=True, fastmath={"contract", "reassoc"})
 def _moments_bilinear(base, dist, col, row, p, rx, ry, tmean, mom):  # pragma: no cover - compiled
     """Bilinear case of :func:`_moments` (same contract)."""

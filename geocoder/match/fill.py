@@ -123,7 +123,8 @@ def fill_window(
         return 0
     return int(
         fill_lines(
-            np.ascontiguousarray(base, dtype=np.float32), samples(dist), params, code, np.asarray(region, dtype=np.int64), int(col_step), int(col_origin), float(step_tol),
+            np.ascontiguousarray(base, dtype=np.float32), samples(dist), params, code,
+            np.asarray(region, dtype=np.int64), int(col_step), int(col_origin), float(step_tol),
             *options.kernel_args(),
         )
     )
