@@ -11,6 +11,19 @@ from distributed import Client, LocalCluster
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Compile the numba kernels once, before xdist's workers and the tests' clusters start.
+
+    Otherwise every process that starts before the cache is written (both xdist workers, each
+    one's LocalCluster workers, the CLI's subprocesses) compiles the same kernels at once.
+    """
+    if hasattr(session.config, "workerinput"):
+        return  # an xdist worker: its controller has done it
+    from geocoder.warmup import compile_kernels
+
+    compile_kernels()
+
+
 @pytest.fixture(scope="session")
 def client():
     """Two worker processes with one thread each, as on the CI machine."""

@@ -2,7 +2,7 @@
 
 Sets the worker environment (:data:`geocoder.runtime.WORKER_ENV`: numeric libraries pinned to
 one thread, as parallelism comes from Dask tasks, and a bounded GDAL block cache) where the
-process was not started with it, compiles the numba kernels once per worker process so the
+process was not started with it, loads (or compiles) the interest and resampling kernels once per worker process so the
 first tiles are not slowed by compilation, and logs the geocoder version the worker runs.
 
 ``--geocoder-version V`` (a preload argument: it goes after ``--preload`` and after the
@@ -75,7 +75,9 @@ def _validate_version_option(ctx: click.Context, param: click.Parameter, value: 
 
 
 def warm_kernels() -> None:
-    """Run every numba kernel once on a tiny input (compiles or loads the cache)."""
+    """Run the interest operator and the resampling kernels once on a tiny input (compiles them or
+    loads them from numba's cache; the image's build compiled the whole job, see
+    :mod:`geocoder.warmup`)."""
     import numpy as np
 
     from geocoder.kernels.interest import detect
