@@ -362,7 +362,11 @@ class WindowReader:
     @property
     def array(self) -> zarr.Array:
         if self._array is None:
-            self._array = zarr.open_group(self.store, mode="r")[self.variable]
+            try:  # `geocoder ingest` writes Zarr v3: one read of zarr.json, not four probes of the format
+                group = zarr.open_group(self.store, mode="r", zarr_format=3)
+            except FileNotFoundError:
+                group = zarr.open_group(self.store, mode="r")
+            self._array = group[self.variable]
             self._identity = array_identity(self.store, self.variable)
         return self._array
 
