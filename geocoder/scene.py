@@ -362,8 +362,8 @@ class WindowReader:
     @property
     def array(self) -> zarr.Array:
         if self._array is None:
-            try:  # `geocoder ingest` writes Zarr v3: one read of zarr.json, not four probes of the format
-                group = zarr.open_group(self.store, mode="r", zarr_format=3)
+            try:  # `geocoder ingest` writes Zarr v3
+                group = storage.open_group(self.store)
             except FileNotFoundError:
                 group = zarr.open_group(self.store, mode="r")
             self._array = group[self.variable]

@@ -45,6 +45,26 @@ def _fs(location: str) -> tuple[fsspec.AbstractFileSystem, str]:
     return fsspec.core.url_to_fs(location)
 
 
+# s3fs reads an object's size (a HEAD request) before every whole-object read, to split large
+# objects over ``max_concurrency`` connections; a Zarr chunk or metadata object is far smaller
+# than its block size (50 MB), so the HEAD would only double the requests.
+_STORE_OPTIONS = {"s3": {"max_concurrency": 1}}
+
+
+def open_group(location: str, mode: str = "r"):
+    """A Zarr v3 group that geocoder wrote (a job's working stores, an ingested scene, an output).
+
+    The format is given, so opening reads ``zarr.json`` alone (left open, zarr-python also
+    probes ``.zgroup``, ``.zattrs`` and ``.zmetadata``: on an object store a failed GET and a
+    listing each); on S3 the chunks are read without a HEAD request first.
+    """
+    import zarr
+
+    protocol = location.split("://", 1)[0] if is_url(location) else None
+    options = {"storage_options": dict(_STORE_OPTIONS[protocol])} if protocol in _STORE_OPTIONS else {}
+    return zarr.open_group(location, mode=mode, zarr_format=3, **options)
+
+
 def join(location: str, *parts: str) -> str:
     """``location`` / ``parts``."""
     if is_url(location):

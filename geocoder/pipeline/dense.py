@@ -53,6 +53,7 @@ from ..match.fill import fill_window
 from ..match.grow import NFIELDS, SEED_COL, SEED_ROW, SEED_WIDTH, SEED_X, SEED_Y, UNVISITED, grow_window, seed_rows
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
+from ..storage import open_group
 from ..tiles import Tile, TileGrid, Window
 from .bands import Bands, band_windows
 from .correspond import distorted_window
@@ -289,7 +290,7 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     Returns ``(new matches, outgoing halo seeds, whether the other slot was written)``.
     """
     h, w = shape
-    g = zarr.open_group(state, mode="r+", zarr_format=3)
+    g = open_group(state, mode="r+")
     core_code = _read_core(g, tile, slot, k, "code")
     rows = seeds[:, SEED_ROW].astype(np.int64) - tile.row0
     cols = seeds[:, SEED_COL].astype(np.int64) - tile.col0
@@ -464,7 +465,7 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
     out[0] -= (np.arange(tile.col0, tile.col1) - dc0)[None, :]
     out[1] -= (np.arange(tile.row0, tile.row1) - dr0)[:, None]
     slot = int(slots[tile.iy, tile.ix])
-    g = zarr.open_group(state, mode="r+", zarr_format=3)
+    g = open_group(state, mode="r+")
     g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out
     g["code"][1 - slot, tile.row0 : tile.row1, tile.col0 : tile.col1] = code[csl]
     return new, 1 - slot
@@ -513,7 +514,7 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
                     res.sigma_x, res.sigma_y, res.rho]).astype(np.float32)
     code = res.code
     slot = 0 if lattice > 1 else 1 - int(slots[tile.iy, tile.ix])
-    _write_core(zarr.open_group(state, mode="r+", zarr_format=3), tile, slot, 1, out, code, fields=_OUT_FIELDS)
+    _write_core(open_group(state, mode="r+"), tile, slot, 1, out, code, fields=_OUT_FIELDS)
     return int((code == 0).sum()), slot
 
 
@@ -562,7 +563,7 @@ def _read_state(state: str, slots: np.ndarray, grid: TileGrid, r0: int, r1: int,
     """Fields (default ``x, y, sigma_x, sigma_y, rho``: (5, h, w)) and ``code`` (h, w) of a
     window of the state, every tile's part from its current slot; from the compact lattice
     state when ``lattice > 1`` (NaN and UNVISITED between its columns)."""
-    g = zarr.open_group(state, mode="r", zarr_format=3)
+    g = open_group(state, mode="r")
     farr, carr = ("fields", "code") if lattice == 1 else ("lattice", "lattice_code")
     redges = np.r_[0, np.cumsum(grid.rows)]
     cedges = np.r_[0, np.cumsum(grid.cols)]
@@ -661,7 +662,7 @@ def _store_block(state: str, window: tuple[int, int, int, int], block: np.ndarra
     from .lines import field_window, tile_sums
 
     r0, r1, c0, c1 = window
-    zarr.open_group(state, mode="r+", zarr_format=3)["field"][:, r0:r1, c0:c1] = block
+    open_group(state, mode="r+")["field"][:, r0:r1, c0:c1] = block
     if mapping is None:
         return None
     # the row sums of the field as dense_field returns it: the polynomial where not usable
@@ -674,7 +675,7 @@ def _stored(stack: da.Array, state: str, grid: TileGrid, job: Job | None,
     """Write ``stack`` (6, H, W) tile by tile into the array ``field`` of the state store; the
     same array read back lazily, in the same chunks, and with ``mapping`` the tiles' row sums
     side by side, shape (n, H, tile columns)."""
-    g = zarr.open_group(state, mode="r+", zarr_format=3)
+    g = open_group(state, mode="r+")
     if "field" not in g:
         g.create_array("field", shape=stack.shape, chunks=(stack.shape[0], grid.rows[0], grid.cols[0]), dtype="float32",
                        fill_value=np.nan, compressors=None)

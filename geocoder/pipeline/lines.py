@@ -41,6 +41,7 @@ from ..quality.lines import (
     smooth_matches,
 )
 from ..status import Status
+from ..storage import open_group
 from ..tiles import Window
 
 
@@ -181,14 +182,13 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
 def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: str, shape: tuple[int, int],
                 mapping: PolyMap, options: LineOptions, shrink: bool, fitted: bool, correlation: int,
                 smooth_part: np.ndarray | None) -> np.ndarray:
-    import zarr
 
     width = shape[1]
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
     smooth = options.smooth // 2 + 1 if options.smooth else 0
     reach = options.max_hole + options.edge + 1 + smooth
     _, _, a, b = Window(r0, r1, c0, c1).grow(0, reach).clip(shape[0], width)
-    f = zarr.open_group(store, mode="r", zarr_format=3)["field"][:, r0:r1, a:b]
+    f = open_group(store, mode="r")["field"][:, r0:r1, a:b]
     dx, dy, px, py, status, _ = field_window(f, mapping, (r0, r1), (a, b))
     sx, sy, rho = f[3], f[4], f[5]
     holes = _hole_block(dx, dy, px, py, status, sx, sy, max_hole=options.max_hole, edge=options.edge)

@@ -26,7 +26,6 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
-import zarr
 
 from .. import progress, storage
 from ..conventions import georeference, pixel_grid, status_attrs
@@ -443,7 +442,7 @@ def register(
             write_overviews(store, client=c)  # in the store before it is committed
         summary.job = job.report()
         _tiepoint_dataset(tp).to_zarr(store, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
-        zarr.open_group(store, mode="r+", zarr_format=3).attrs["summary"] = json.dumps(asdict(summary))
+        storage.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
         commit_output(store, out, overwrite=overwrite)
     return xr.open_zarr(out, decode_coords="all", consolidated=False)
 
@@ -632,7 +631,7 @@ def ingest_all(job: Job, scenes: dict[str, xr.DataArray], tile: int, client,
 
 def _write_tile(store: str, window: tuple[int, int, int, int], names: tuple[str, ...], *blocks: np.ndarray) -> np.ndarray:
     r0, r1, c0, c1 = window
-    g = zarr.open_group(store, mode="r+", zarr_format=3)
+    g = storage.open_group(store, mode="r+")
     for name, block in zip(names, blocks):
         g[name][..., r0:r1, c0:c1] = block
     status = blocks[names.index("status")]
