@@ -21,8 +21,12 @@ import os
 import shutil
 import tempfile
 import uuid
+from typing import TYPE_CHECKING
 
 import fsspec
+
+if TYPE_CHECKING:
+    import zarr
 
 ROOT_METADATA = "zarr.json"
 
@@ -51,7 +55,7 @@ def _fs(location: str) -> tuple[fsspec.AbstractFileSystem, str]:
 _STORE_OPTIONS = {"s3": {"max_concurrency": 1}}
 
 
-def open_group(location: str, mode: str = "r"):
+def open_group(location: str, mode: str = "r") -> "zarr.Group":
     """A Zarr v3 group that geocoder wrote (a job's working stores, an ingested scene, an output).
 
     The format is given, so opening reads ``zarr.json`` alone (left open, zarr-python also

@@ -2,8 +2,9 @@
 
 Sets the worker environment (:data:`geocoder.runtime.WORKER_ENV`: numeric libraries pinned to
 one thread, as parallelism comes from Dask tasks, and a bounded GDAL block cache) where the
-process was not started with it, loads (or compiles) the interest and resampling kernels once per worker process so the
-first tiles are not slowed by compilation, and logs the geocoder version the worker runs.
+process was not started with it, loads (or compiles) the interest and resampling kernels once
+per worker process so the first tiles are not slowed by compilation, and logs the geocoder
+version the worker runs.
 
 ``--geocoder-version V`` (a preload argument: it goes after ``--preload`` and after the
 positional scheduler address) makes the worker refuse to start unless the installed geocoder
