@@ -215,11 +215,45 @@ def dask_client(client: Client | None = None, scheduler: str | None = None, n_wo
             log.debug("Dask scheduler %s; dashboard %s", c.scheduler.address, c.dashboard_link)
             yield c
         return
-    with local_cluster(n_workers) as cluster, Client(cluster) as c, c.as_current():
-        c.register_plugin(IgnoreInterrupts())
-        c.register_plugin(QuietRawFrames())
-        log.debug("local Dask cluster with %d workers; dashboard %s", len(cluster.workers), c.dashboard_link)
-        yield c
+    cluster = local_cluster(n_workers)
+    try:
+        with Client(cluster) as c, c.as_current():
+            c.register_plugin(IgnoreInterrupts())
+            c.register_plugin(QuietRawFrames())
+            log.debug("local Dask cluster with %d workers; dashboard %s", len(cluster.workers), c.dashboard_link)
+            yield c
+    finally:
+        close_local_cluster(cluster)
+
+
+def close_local_cluster(cluster: LocalCluster, timeout: float | None = None) -> None:
+    """Close ``cluster``; its worker processes still running when closing times out are killed.
+
+    Closing must not replace the job's own outcome (an interrupt, an error, a committed output)
+    with Dask's timeout: a worker busy in a kernel, or one just killed on a loaded machine,
+    can take longer to end than the nanny waits for (5 s, the last 1 s after SIGKILL).
+
+    Parameters
+    ----------
+    cluster : the local cluster (its workers are processes started by this one).
+    timeout : seconds for the whole close (Dask's default when None).
+    """
+    import asyncio
+    import signal
+
+    import psutil
+
+    pids = [pid for pid in (getattr(w, "pid", None) for w in cluster.workers.values()) if pid]
+    try:
+        cluster.close(timeout=timeout)
+    except (TimeoutError, asyncio.TimeoutError):
+        log.warning("the local Dask cluster did not close in time; its %d worker process(es) are killed", len(pids))
+        for pid in pids:
+            try:
+                if psutil.Process(pid).ppid() == os.getpid():  # still ours, not a reused pid
+                    os.kill(pid, signal.SIGKILL)
+            except (psutil.Error, ProcessLookupError):
+                pass
 
 
 def is_cluster_failure(exc: BaseException) -> bool:
