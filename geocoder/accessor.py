@@ -17,14 +17,13 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import xarray as xr
 
-from .cog import to_cog
-from .kernels.polynomial import PolyMap
-from .pipeline.register import RegisterSummary, register
-from .scene import ingest
+if TYPE_CHECKING:  # imported where used: ``import geocoder`` registers the accessors without loading the pipeline
+    from .kernels.polynomial import PolyMap
+    from .pipeline.register import RegisterSummary
 
 __all__ = ["GeocoderArrayAccessor", "GeocoderDatasetAccessor"]
 
@@ -62,6 +61,8 @@ class GeocoderArrayAccessor:
         A DataArray is used as it is: it should be a scene as :func:`geocoder.open_scene`
         returns (dims ``(band, y, x)``, float with NaN as nodata, CRS through rioxarray).
         """
+        from .pipeline.register import register
+
         return register(self._obj, distorted, **kwargs)
 
     def ingest(self, out: str | os.PathLike, **kwargs: Any) -> xr.DataArray:
@@ -79,6 +80,8 @@ class GeocoderArrayAccessor:
         xarray.DataArray
             The scene re-opened from ``out``.
         """
+        from .scene import ingest
+
         return ingest(self._obj, out, **kwargs)
 
     def to_cog(self, path: str | os.PathLike, **kwargs: Any) -> Path:
@@ -96,6 +99,8 @@ class GeocoderArrayAccessor:
         pathlib.Path
             The path written.
         """
+        from .cog import to_cog
+
         return to_cog(self._obj, path, **kwargs)
 
 
@@ -129,6 +134,8 @@ class GeocoderDatasetAccessor:
         pathlib.Path
             The path written.
         """
+        from .cog import to_cog
+
         return to_cog(self._obj, path, variable=variable, **kwargs)
 
     def summary(self) -> RegisterSummary:
@@ -144,6 +151,8 @@ class GeocoderDatasetAccessor:
         ValueError
             If the dataset is not a register output (no ``summary`` attribute).
         """
+        from .pipeline.register import RegisterSummary
+
         return RegisterSummary(**json.loads(self._attr("summary")))
 
     def mapping(self) -> PolyMap:
@@ -159,6 +168,8 @@ class GeocoderDatasetAccessor:
         ValueError
             If the dataset is not a register output (no ``mapping`` attribute).
         """
+        from .kernels.polynomial import PolyMap
+
         return PolyMap.from_dict(json.loads(self._attr("mapping")))
 
     def _attr(self, name: str) -> str:

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import rasterio
 import xarray as xr
 from pairs import write_synthetic_pair
 
-import geocoder
 from geocoder import open_scene, register
 from geocoder.accessor import GeocoderArrayAccessor, GeocoderDatasetAccessor
 from geocoder.kernels.polynomial import PolyMap
@@ -22,7 +24,18 @@ def test_import_geocoder_registers_the_accessor():
     assert isinstance(xr.Dataset().geocoder, GeocoderDatasetAccessor)
     with pytest.raises(ValueError, match="not a geocoder register output"):
         xr.Dataset().geocoder.summary()
-    assert geocoder.accessor.register is geocoder.register  # bound, not re-implemented
+
+
+def test_import_geocoder_loads_the_pipeline_on_first_use():
+    """``import geocoder`` registers the accessors and answers ``--help`` without the pipeline, its
+    kernels and their libraries; the public functions load them when first looked up."""
+    code = ("import sys, geocoder, xarray as xr; assert isinstance(xr.Dataset().geocoder, geocoder.accessor.GeocoderDatasetAccessor); "
+            "heavy = ('geocoder.pipeline.register', 'numba', 'distributed', 'zarr', 'rasterio'); "
+            "assert not [m for m in heavy if m in sys.modules], [m for m in heavy if m in sys.modules]; "
+            "from geocoder.pipeline.register import register; assert geocoder.register is register; "
+            "assert all(hasattr(geocoder, n) for n in geocoder.__all__)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
 
 
 def test_accessor_register_ingest_and_cog(tmp_path, client):
