@@ -66,6 +66,13 @@ def reference(pair_dir, s3_client) -> dict[str, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
+def reference_no_dense(pair_dir, s3_client) -> dict[str, np.ndarray]:
+    out = pair_dir / "reference-no-dense.zarr"
+    register(pair_dir / "base.tif", pair_dir / "dist.tif", out=out, tile=TILE, client=s3_client, dense=False)
+    return load_output(str(out))
+
+
+@pytest.fixture(scope="module")
 def s3_inputs(pair_dir, s3, s3_client) -> tuple[str, str]:
     """Both scenes ingested to Zarr stores on the object store (Python API and CLI)."""
     base, dist = f"{s3}/inputs/base.zarr", f"{s3}/inputs/dist.zarr"
@@ -128,15 +135,17 @@ def test_geotiff_on_the_object_store_reads_like_the_local_file(s3, pair_dir, s3_
     np.testing.assert_array_equal(s3_client.compute(remote.data).result(), local.values)
 
 
-def test_register_on_the_object_store_matches_local_disk(s3, s3_inputs, reference, s3_client):
+def test_register_on_the_object_store_matches_local_disk(s3, s3_inputs, reference_no_dense, s3_client):
+    """The polynomial job (the dense one on the object store runs, killed and resumed, below)."""
     out = f"{s3}/outputs/registered.zarr"
-    ds = register(*s3_inputs, out=out, tile=TILE, client=s3_client)
+    ds = register(*s3_inputs, out=out, tile=TILE, client=s3_client, dense=False)
     assert ds.sizes["x"] == SIZE
-    assert_identical(load_output(out), reference)
+    assert_identical(load_output(out), reference_no_dense)
     assert not storage.exists(job_directory(out)), "the job's working files are removed after the commit"
 
 
 def test_killed_job_on_the_object_store_resumes(s3, s3_inputs, reference, s3_client):
+    """The dense job on the object store, killed mid dense matching: the rerun's output is the local one."""
     out = f"{s3}/outputs/resumed.zarr"
     tiles = storage.join(job_directory(out), "tiles", "dense-r0")
     cmd = [*GEOCODER, "register", *s3_inputs, "--out", out, "--tile", str(TILE), "--scheduler", s3_client.scheduler.address]
