@@ -39,18 +39,27 @@ def compile_kernels(*, size: int = 256, tile: int = 128) -> float:
     from distributed import Client, LocalCluster
 
     from .demo import run_demo
-    from .kernels.resample import METHODS, sample
 
     start = time.perf_counter()
-    image = np.random.default_rng(0).normal(size=(32, 32)).astype(np.float32)
-    for method in METHODS:  # the job resamples with one of them
-        sample(image, np.array([3.5]), np.array([4.25]), method=method)
+    warm_small_kernels()  # the job resamples with one method only
     with warnings.catch_warnings(), tempfile.TemporaryDirectory(prefix="geocoder-warmup-") as directory, \
             LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
             Client(cluster, set_as_default=False) as client:
         warnings.simplefilter("ignore")  # the demo's raw partner has no georeference, as it should not
         run_demo(size=size, tile=tile, directory=directory, client=client)
     return time.perf_counter() - start
+
+
+def warm_small_kernels() -> None:
+    """Run the interest operator and every resampling method once on a 32 x 32 image (compiles
+    them, or loads them from numba's cache): what a worker runs first on any job."""
+    from .kernels.interest import detect
+    from .kernels.resample import METHODS, sample
+
+    image = np.random.default_rng(0).normal(size=(32, 32)).astype(np.float32)
+    for method in METHODS:
+        sample(image, np.array([3.5]), np.array([4.25]), method=method)
+    detect(image, cell=16)
 
 
 if __name__ == "__main__":

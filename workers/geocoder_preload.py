@@ -79,15 +79,9 @@ def warm_kernels() -> None:
     """Run the interest operator and the resampling kernels once on a tiny input (compiles them or
     loads them from numba's cache; the image's build compiled the whole job, see
     :mod:`geocoder.warmup`)."""
-    import numpy as np
+    from geocoder.warmup import warm_small_kernels
 
-    from geocoder.kernels.interest import detect
-    from geocoder.kernels.resample import METHODS, sample
-
-    img = np.random.default_rng(0).normal(size=(32, 32)).astype(np.float32)
-    for method in METHODS:
-        sample(img, np.array([3.5]), np.array([4.25]), method=method)
-    detect(img, cell=16)
+    warm_small_kernels()
 
 
 def _refuse_plugin(exc: Exception):
