@@ -227,11 +227,12 @@ def dask_client(client: Client | None = None, scheduler: str | None = None, n_wo
 
 
 def close_local_cluster(cluster: LocalCluster, timeout: float | None = None) -> None:
-    """Close ``cluster``; its worker processes still running when closing times out are killed.
+    """Close ``cluster``; if closing times out, say so instead of raising.
 
     Closing must not replace the job's own outcome (an interrupt, an error, a committed output)
     with Dask's timeout: a worker busy in a kernel, or one just killed on a loaded machine,
-    can take longer to end than the nanny waits for (5 s, the last 1 s after SIGKILL).
+    can take longer to end than the nanny waits for (5 s, the last 1 s after its SIGKILL). The
+    worker processes are daemons of this process: what is left of them ends when it exits.
 
     Parameters
     ----------
@@ -239,21 +240,13 @@ def close_local_cluster(cluster: LocalCluster, timeout: float | None = None) -> 
     timeout : seconds for the whole close (Dask's default when None).
     """
     import asyncio
-    import signal
-
-    import psutil
 
     pids = [pid for pid in (getattr(w, "pid", None) for w in cluster.workers.values()) if pid]
     try:
         cluster.close(timeout=timeout)
     except (TimeoutError, asyncio.TimeoutError):
-        log.warning("the local Dask cluster did not close in time; its %d worker process(es) are killed", len(pids))
-        for pid in pids:
-            try:
-                if psutil.Process(pid).ppid() == os.getpid():  # still ours, not a reused pid
-                    os.kill(pid, signal.SIGKILL)
-            except (psutil.Error, ProcessLookupError):
-                pass
+        log.warning("the local Dask cluster did not close in time; its worker processes (pid %s) end with this process",
+                    ", ".join(map(str, pids)) or "none")
 
 
 def is_cluster_failure(exc: BaseException) -> bool:
