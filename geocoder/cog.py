@@ -49,6 +49,7 @@ from pathlib import Path
 import dask
 import dask.array as da
 import numpy as np
+import rioxarray  # noqa: F401  (registers the .rio accessor this module reads the georeference with)
 import xarray as xr
 
 from . import progress, storage
