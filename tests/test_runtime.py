@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import subprocess
 import sys
-import time
 
 import psutil
 
@@ -31,7 +30,7 @@ def _ended(pid: int) -> bool:
         return True
 
 
-def test_a_local_cluster_that_does_not_close_in_time_is_not_an_error():
+def test_a_cancelled_close_of_a_local_cluster_is_a_warning_not_an_error():
     """Closing must not replace a job's outcome (Ctrl-C, a committed output) with Dask's TimeoutError.
 
     A loaded machine made a nanny wait longer than its 1 s for a SIGKILLed worker to be reaped:
@@ -45,10 +44,14 @@ def test_a_local_cluster_that_does_not_close_in_time_is_not_an_error():
     assert len(pids) == 2
     assert f"geocoder.runtime: the local Dask cluster did not close in time; its worker processes (pid {pids[0]}, {pids[1]})" \
         in r.stdout, r.stdout
-    deadline = time.monotonic() + 30
-    while not all(map(_ended, pids)) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert all(map(_ended, pids)), [p for p in pids if not _ended(p)]
+    procs = []
+    for pid in pids:
+        try:
+            procs.append(psutil.Process(pid))
+        except psutil.NoSuchProcess:
+            pass
+    _, alive = psutil.wait_procs(procs, timeout=30)
+    assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE], alive
 
 
 def test_a_local_cluster_closes_quietly(caplog):

@@ -182,7 +182,6 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
 def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: str, shape: tuple[int, int],
                 mapping: PolyMap, options: LineOptions, shrink: bool, fitted: bool, correlation: int,
                 smooth_part: np.ndarray | None) -> np.ndarray:
-
     width = shape[1]
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
     smooth = options.smooth // 2 + 1 if options.smooth else 0
