@@ -282,6 +282,9 @@ def current_client() -> Client | None:
 #: Single-task items :func:`compute_as_completed` keeps in flight per worker thread (a bound on the
 #: results and inputs waiting on a worker, and enough queued work to hide the round trips).
 IN_FLIGHT_PER_THREAD = 8
+#: Fewer tasks than this many per worker thread are kept one per thread in flight (see
+#: :func:`compute_as_completed`); from ``FEW_PER_THREAD * IN_FLIGHT_PER_THREAD`` on, the full window.
+FEW_PER_THREAD = 4
 
 
 def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
@@ -290,7 +293,8 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     On a distributed client results arrive in completion order. Tasks that share inputs
     run as one graph (common inputs computed once). Tasks that are each a single task of
     their own (inputs embedded, data read by the task) are kept :data:`IN_FLIGHT_PER_THREAD`
-    per worker thread (of the moment) in flight, the next submitted as each finishes: a
+    per worker thread (of the moment) in flight (fewer when the tasks are few per thread:
+    :data:`FEW_PER_THREAD`), the next submitted as each finishes: a
     finished result waits on its worker, with its task's inputs, until the client has fetched
     it, so submitting all at once let a busy client leave a backlog that grew with the number
     of tiles; too few in flight leave a worker idle for a round trip after each short task
@@ -307,10 +311,18 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     shared = not all(_single_task(t) for _, t in items)
     running: dict[int, tuple[str, Any]] = {}  # id(future) -> (key, future)
 
+    def threads() -> int:
+        return max(1, sum(client.nthreads().values()))
+
+    # a stage of few tasks per thread (a handful of tiles, each seconds long) runs one per thread,
+    # the next to the thread that frees first: the scheduler hands every worker its share at
+    # submission and does not move a queued task, so 4 tiles on 2 workers waited on the slower pair
+    per_thread = max(1, min(IN_FLIGHT_PER_THREAD, len(items) // (FEW_PER_THREAD * threads())))
+
     def room() -> int:  # asked again as each task finishes: workers may join or leave
         if shared:
             return len(items)
-        return IN_FLIGHT_PER_THREAD * max(1, sum(client.nthreads().values())) - len(running)
+        return per_thread * threads() - len(running)
 
     n = room()
     first = client.compute([t for _, t in items[:n]])

@@ -184,3 +184,11 @@ def test_an_error_leaves_no_task_writing_behind_it(client, tmp_path):
         for _ in compute_as_completed(tasks):
             pass
     assert (tmp_path / "late").exists(), "the error came back while a task was still running"
+
+
+def test_a_few_long_tasks_run_one_per_thread(client):
+    """Four tiles on two threads: one each in flight, the next to whichever thread frees first
+    (submitted together, each worker got two and the faster one idled at the end)."""
+    results, in_flight = _compute_counting(client, _squares(4))
+    assert results == {f"t{i}": i * i for i in range(4)}
+    assert max(in_flight) <= sum(client.nthreads().values()) == 2
