@@ -1,15 +1,16 @@
 """Bad inputs and faults, through the real command line: exit code, one line, what is left on disk.
 
 Every case runs ``geocoder`` as a subprocess (the test cluster's scheduler where a job gets as
-far as computing) and asserts the exit code (2 bad input or usage, 3 environment, 130
-interrupted), the single ``geocoder: error: ...`` line naming the file or resource, that no
-traceback is printed, and that nothing the user had was deleted, changed or hidden. The
+far as computing; the data-loss and bad-input tables each in one process of their own, case
+after case, see :mod:`cli_batch`: a fresh process per case cost ~4 s of CPU for the imports)
+and asserts the exit code (2 bad input or usage, 3 environment, 130 interrupted), the single
+``geocoder: error: ...`` line naming the file or resource, that no traceback is printed, and
+that nothing the user had was deleted, changed or hidden. The
 data-loss cases come first.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import signal
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+from cli_batch import snapshot
 
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
@@ -35,16 +37,15 @@ def run(*args, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([*GEOCODER, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=timeout)
 
 
-def snapshot(directory: Path) -> dict[str, str]:
-    """Every file and directory under ``directory`` (hidden ones included) with its content hash."""
-    out = {}
-    for root, dirs, files in os.walk(directory):
-        for d in dirs:
-            out[os.path.relpath(os.path.join(root, d), directory) + "/"] = "dir"
-        for f in files:
-            p = os.path.join(root, f)
-            out[os.path.relpath(p, directory)] = hashlib.sha256(Path(p).read_bytes()).hexdigest()
-    return out
+def run_batch(cases: dict[str, list], cwd: Path, timeout: float = 600) -> dict[str, tuple[subprocess.CompletedProcess, dict]]:
+    """Every case's command line run in one fresh process (:mod:`cli_batch`): its result, and
+    the snapshot of ``cwd`` after it."""
+    todo = [{"args": list(map(str, args)), "cwd": str(cwd)} for args in cases.values()]
+    r = subprocess.run([sys.executable, str(Path(__file__).with_name("cli_batch.py"))], input=json.dumps(todo),
+                       capture_output=True, text=True, timeout=timeout)
+    assert r.returncode == 0, r.stderr
+    return {name: (subprocess.CompletedProcess(c["args"], res["code"], res["stdout"], res["stderr"]), res["after"])
+            for (name, c), res in zip(zip(cases, todo), json.loads(r.stdout))}
 
 
 def assert_error(r: subprocess.CompletedProcess, code: int, *needles: str) -> str:
@@ -110,13 +111,19 @@ DATA_LOSS = {
 }
 
 
-@pytest.mark.parametrize("case", list(DATA_LOSS))
-def test_data_loss_refused(work, case):
-    args, code, needles = DATA_LOSS[case]
+@pytest.fixture(scope="module")
+def data_loss_runs(work):
     before = snapshot(work)
-    r = run(*args, cwd=work)
+    return before, run_batch({name: args for name, (args, _, _) in DATA_LOSS.items()}, work)
+
+
+@pytest.mark.parametrize("case", list(DATA_LOSS))
+def test_data_loss_refused(data_loss_runs, case):
+    _, code, needles = DATA_LOSS[case]
+    before, runs = data_loss_runs
+    r, after = runs[case]
     assert_error(r, code, *needles)
-    assert snapshot(work) == before  # nothing deleted, changed, hidden or left behind
+    assert after == before  # nothing deleted, changed, hidden or left behind
 
 
 def test_out_dot_in_an_empty_working_directory_keeps_the_directory(work, tmp_path, client):
@@ -193,18 +200,28 @@ BAD_INPUT = {
 }
 
 
-@pytest.mark.parametrize("case", list(BAD_INPUT))
-def test_bad_input_is_one_line(work, client, case):
-    args, needles = BAD_INPUT[case]
-    if args[0] == "register":
-        args = [*args, "--out", "o.zarr", "--tile", 128] if "--tile" not in args else [*args, "--out", "o.zarr"]
-        if "--scheduler" not in args:
-            args += ["--scheduler", client.scheduler.address]
-    elif args[0] == "ingest":
-        args = [*args, "--scheduler", client.scheduler.address]
+@pytest.fixture(scope="module")
+def bad_input_runs(work, client, data_loss_runs):
+    def full(args: list) -> list:
+        if args[0] == "register":
+            args = [*args, "--out", "o.zarr", "--tile", 128] if "--tile" not in args else [*args, "--out", "o.zarr"]
+            if "--scheduler" not in args:
+                args += ["--scheduler", client.scheduler.address]
+        elif args[0] == "ingest":
+            args = [*args, "--scheduler", client.scheduler.address]
+        return args
+
     before = snapshot(work)
-    assert_error(run(*args, cwd=work), 2, *needles)
-    assert snapshot(work) == before  # no output, no job directory, no lock
+    return before, run_batch({name: full(args) for name, (args, _) in BAD_INPUT.items()}, work)
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUT))
+def test_bad_input_is_one_line(bad_input_runs, case):
+    _, needles = BAD_INPUT[case]
+    before, runs = bad_input_runs
+    r, after = runs[case]
+    assert_error(r, 2, *needles)
+    assert after == before  # no output, no job directory, no lock
 
 
 # --- environment failures: exit 3, the job kept for a rerun ----------------------------------
