@@ -102,13 +102,23 @@ def ecef_to_geodetic(X: ArrayLike, Y: ArrayLike, Z: ArrayLike) -> tuple[np.ndarr
     X, Y, Z = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (X, Y, Z)))
     p = np.hypot(X, Y)
     lon = np.arctan2(Y, X)
-    # initial parametric latitude
-    beta = np.arctan2(Z, p * (1.0 - WGS84_F))
-    for _ in range(4):
-        sb, cb = np.sin(beta), np.cos(beta)
-        lat = np.arctan2(Z + _EP2 * WGS84_B * sb**3, p - WGS84_E2 * WGS84_A * cb**3)
-        beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
-    sl, cl = np.sin(lat), np.cos(lat)
+    # the angles as (sine, cosine) pairs, normalised: tan(beta) = (1 - f) tan(lat), and
+    # Bowring's latitude is the direction of (num, den); no trigonometric function in the loop
+    # (the simulator's ground of every pixel spent half its time in this function's arctan2, sin, cos)
+    k = 1.0 - WGS84_F
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kp = k * p
+        r = np.sqrt(Z * Z + kp * kp)
+        sb, cb = Z / r, kp / r
+        for _ in range(4):
+            num = Z + (_EP2 * WGS84_B) * (sb * sb * sb)
+            den = p - (WGS84_E2 * WGS84_A) * (cb * cb * cb)
+            kn = k * num
+            r = np.sqrt(kn * kn + den * den)
+            sb, cb = kn / r, den / r
+        r = np.sqrt(num * num + den * den)
+        sl, cl = num / r, den / r
+    lat = np.arctan2(num, den)
     h = p * cl + Z * sl - WGS84_A * np.sqrt(1.0 - WGS84_E2 * sl * sl)
     return lat, lon, h
 
