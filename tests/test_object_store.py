@@ -27,7 +27,7 @@ from geocoder.testing import local_s3
 
 pytestmark = pytest.mark.cluster
 
-SIZE, TILE = 768, 256
+SIZE, TILE = 512, 256
 BUCKET = "geocoder-test"
 GEOCODER = [sys.executable, "-m", "geocoder.cli"]
 
