@@ -302,8 +302,8 @@ def wait_past_correspondence(p: subprocess.Popen, job: Path, timeout: float = 24
 
 def test_ctrl_c_is_one_line_and_the_rerun_resumes(tmp_path, client):
     """SIGINT to the whole process group, as a terminal's Ctrl-C, mid dense matching."""
-    src = synthetic_ortho((864, 864), seed=8)
-    pair = make_pair(src, shape=(768, 768), seed=8, margin=48)
+    src = synthetic_ortho((608, 608), seed=8)
+    pair = make_pair(src, shape=(512, 512), seed=8, margin=48)
     write_geotiff(tmp_path / "b.tif", pair.base)
     write_geotiff(tmp_path / "d.tif", pair.distorted)
     # a terminal's job starts with Ctrl-C at its default; a test runner started in the
@@ -351,8 +351,8 @@ def test_options_are_honoured(work, client):
 
 def test_scheduler_lost_mid_job_keeps_the_job(tmp_path):
     """The scheduler of a 'cluster up' cluster killed mid dense matching: exit 3, one line, job kept."""
-    src = synthetic_ortho((864, 864), seed=9)
-    pair = make_pair(src, shape=(768, 768), seed=9, margin=48)
+    src = synthetic_ortho((608, 608), seed=9)
+    pair = make_pair(src, shape=(512, 512), seed=9, margin=48)
     write_geotiff(tmp_path / "b.tif", pair.base)
     write_geotiff(tmp_path / "d.tif", pair.distorted)
     up = run("cluster", "up", "--workers", 1, "--dir", tmp_path / "cl", cwd=tmp_path, timeout=180)
