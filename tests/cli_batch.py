@@ -9,6 +9,7 @@ file, so that the caller can tell what a case left behind. Prints one JSON list 
 
 Starting the interpreter and importing geocoder's pipeline cost ~4 s of CPU per process on
 the CI machine; the bad-input and data-loss tables of ``test_faults.py`` (42 cases) pay it once.
+Tests call :func:`run_batch`.
 """
 
 from __future__ import annotations
@@ -19,8 +20,10 @@ import io
 import json
 import logging
 import os
+import subprocess
 import sys
 import traceback
+from pathlib import Path
 
 
 def snapshot(directory: str) -> dict[str, str]:
@@ -47,13 +50,25 @@ def run_case(args: list[str], cwd: str) -> dict:
     code = 0
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
-            main.main(["-q", *args], prog_name="geocoder")
+            main.main(args, prog_name="geocoder")
         except SystemExit as exc:
             code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         except BaseException:  # noqa: BLE001 - what the interpreter would print for an uncaught exception
             traceback.print_exc()
             code = 1
     return {"code": code, "stdout": out.getvalue(), "stderr": err.getvalue(), "after": snapshot(cwd)}
+
+
+def run_batch(cases: dict[str, list], cwd: Path, env: dict | None = None,
+              timeout: float = 600) -> dict[str, tuple[subprocess.CompletedProcess, dict]]:
+    """Every case's command line (name -> arguments after ``geocoder``) run in one fresh process,
+    in order: by name, its result and the snapshot of ``cwd`` after it."""
+    todo = [{"args": list(map(str, args)), "cwd": str(cwd)} for args in cases.values()]
+    r = subprocess.run([sys.executable, __file__], input=json.dumps(todo), capture_output=True, text=True, env=env,
+                       timeout=timeout)
+    assert r.returncode == 0, r.stderr
+    return {name: (subprocess.CompletedProcess(c["args"], res["code"], res["stdout"], res["stderr"]), res["after"])
+            for name, c, res in zip(cases, todo, json.loads(r.stdout))}
 
 
 if __name__ == "__main__":

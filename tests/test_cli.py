@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pytest
 from affine import Affine
+from cli_batch import run_batch
 from pairs import write_synthetic_pair
 
 from geocoder.scene import write_geotiff
@@ -62,7 +63,8 @@ def test_demo_reports_error_against_truth(tmp_path, client):
     assert (tmp_path / "demo" / "registered.zarr" / "zarr.json").exists()
     # the CLI's register on the demo's files prints the summary
     out = tmp_path / "again.zarr"
-    r = run("register", tmp_path / "demo/base.tif", tmp_path / "demo/distorted.tif", "--out", out, "--tile", 256, "--resampling", "cubic", "--scheduler", client.scheduler.address)
+    r = run("register", tmp_path / "demo/base.tif", tmp_path / "demo/distorted.tif", "--out", out, "--tile", 256, "--resampling",
+            "cubic", "--no-dense", "--scheduler", client.scheduler.address)
     assert r.returncode == 0, r.stderr
     assert "tie points:" in r.stdout and "robust RMS" in r.stdout and (out / "zarr.json").exists()
 
@@ -76,16 +78,18 @@ def test_quiet_and_verbose_before_or_after_the_subcommand(tmp_path, client, wher
 
     def register(out, *flags):
         args = ["register", tmp_path / "base.tif", tmp_path / "dist.tif", "--out", tmp_path / out, *common]
-        return run(*flags, *args) if where == "before" else run(*args, *flags)
+        return [*flags, *args] if where == "before" else [*args, *flags]
 
-    loud, quiet, verbose = register("loud.zarr"), register("quiet.zarr", "-q"), register("verbose.zarr", "-v")
+    # one process for the four command lines (see cli_batch)
+    runs = run_batch({"loud": register("loud.zarr"), "quiet": register("quiet.zarr", "-q"),
+                      "verbose": register("verbose.zarr", "-v"), "dashes": register("x.zarr", "--", "-q")}, tmp_path)
+    (loud, _), (quiet, _), (verbose, _), (dashes, _) = runs.values()
     for r in (loud, quiet, verbose):
         assert r.returncode == 0, r.stderr
     assert "tiles" in loud.stderr, "progress is shown by default"
     assert "tiles" not in quiet.stderr, "-q: no progress"
     assert len(verbose.stderr.splitlines()) > len(loud.stderr.splitlines()), "-v: the stages' log lines too"
-    r = run("register", tmp_path / "base.tif", tmp_path / "dist.tif", "--out", tmp_path / "x.zarr", *common, "--", "-q")
-    assert r.returncode == 2, "after --, -q is an argument, not the option"
+    assert dashes.returncode == 2, "after --, -q is an argument, not the option"
 
 
 def test_ingest_command(shared_data, tmp_path, client):

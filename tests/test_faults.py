@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-from cli_batch import snapshot
+from cli_batch import run_batch, snapshot
 
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
@@ -35,17 +35,6 @@ GEOCODER = [sys.executable, "-m", "geocoder.cli", "-q"]
 
 def run(*args, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([*GEOCODER, *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=timeout)
-
-
-def run_batch(cases: dict[str, list], cwd: Path, timeout: float = 600) -> dict[str, tuple[subprocess.CompletedProcess, dict]]:
-    """Every case's command line run in one fresh process (:mod:`cli_batch`): its result, and
-    the snapshot of ``cwd`` after it."""
-    todo = [{"args": list(map(str, args)), "cwd": str(cwd)} for args in cases.values()]
-    r = subprocess.run([sys.executable, str(Path(__file__).with_name("cli_batch.py"))], input=json.dumps(todo),
-                       capture_output=True, text=True, timeout=timeout)
-    assert r.returncode == 0, r.stderr
-    return {name: (subprocess.CompletedProcess(c["args"], res["code"], res["stdout"], res["stderr"]), res["after"])
-            for (name, c), res in zip(zip(cases, todo), json.loads(r.stdout))}
 
 
 def assert_error(r: subprocess.CompletedProcess, code: int, *needles: str) -> str:
@@ -114,7 +103,7 @@ DATA_LOSS = {
 @pytest.fixture(scope="module")
 def data_loss_runs(work):
     before = snapshot(work)
-    return before, run_batch({name: args for name, (args, _, _) in DATA_LOSS.items()}, work)
+    return before, run_batch({name: ["-q", *args] for name, (args, _, _) in DATA_LOSS.items()}, work)
 
 
 @pytest.mark.parametrize("case", list(DATA_LOSS))
@@ -212,7 +201,7 @@ def bad_input_runs(work, client, data_loss_runs):
         return args
 
     before = snapshot(work)
-    return before, run_batch({name: full(args) for name, (args, _) in BAD_INPUT.items()}, work)
+    return before, run_batch({name: ["-q", *full(args)] for name, (args, _) in BAD_INPUT.items()}, work)
 
 
 @pytest.mark.parametrize("case", list(BAD_INPUT))
