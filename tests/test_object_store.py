@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
-from distributed import Client, LocalCluster
+from distributed import Client
 from pairs import assert_identical, load_output, write_synthetic_pair
 
 from geocoder import ingest, register, storage
 from geocoder.pipeline.register import job_directory
+from geocoder.runtime import local_cluster
 from geocoder.testing import local_s3
 
 pytestmark = pytest.mark.cluster
@@ -48,9 +49,8 @@ def fsspec_fs(url: str):
 @pytest.fixture(scope="module")
 def s3_client(s3):
     """Worker processes started after the environment names the S3 endpoint."""
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
-        with Client(cluster) as c:
-            yield c
+    with local_cluster(2) as cluster, Client(cluster) as c:
+        yield c
 
 
 @pytest.fixture(scope="module")

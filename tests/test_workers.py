@@ -10,7 +10,7 @@ import dask
 import numpy as np
 import pytest
 import yaml
-from distributed import Client, LocalCluster
+from distributed import Client
 
 from geocoder import register
 from geocoder.runtime import IN_FLIGHT_PER_THREAD, WORKER_CONFIG, WORKER_ENV, compute_as_completed, local_cluster
@@ -132,7 +132,7 @@ def test_tile_tasks_sharing_inputs_run_as_one_graph(client):
 
 
 def test_the_window_follows_workers_that_join_during_a_stage():
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, Client(cluster) as c:
+    with local_cluster(1) as cluster, Client(cluster) as c:
         def grow(n: int) -> None:
             if n == 0:
                 cluster.scale(2)
