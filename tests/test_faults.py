@@ -5,8 +5,7 @@ far as computing; the data-loss and bad-input tables each in one process of thei
 after case, see :mod:`cli_batch`: a fresh process per case cost ~4 s of CPU for the imports)
 and asserts the exit code (2 bad input or usage, 3 environment, 130 interrupted), the single
 ``geocoder: error: ...`` line naming the file or resource, that no traceback is printed, and
-that nothing the user had was deleted, changed or hidden. The
-data-loss cases come first.
+that nothing the user had was deleted, changed or hidden. The data-loss cases come first.
 """
 
 from __future__ import annotations
@@ -190,7 +189,7 @@ BAD_INPUT = {
 
 
 @pytest.fixture(scope="module")
-def bad_input_runs(work, client, data_loss_runs):
+def bad_input_runs(work, client, data_loss_runs):  # after the data-loss cases, as in the file
     def full(args: list) -> list:
         if args[0] == "register":
             args = [*args, "--out", "o.zarr", "--tile", 128] if "--tile" not in args else [*args, "--out", "o.zarr"]
