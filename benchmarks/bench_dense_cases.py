@@ -30,7 +30,7 @@ column measures.)
 
 Usage::
 
-    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,tol0.05,it1,mi8,tries1]
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1]
 """
 
 from __future__ import annotations
@@ -248,6 +248,9 @@ def main() -> None:
         if re.fullmatch(r"col\d+", mode):
             n = int(mode[3:])
             modes[mode] = RegisterOptions(matching=DenseOptions(col_step=n, halo=max(n, 16)))
+        elif m := re.fullmatch(r"row(\d+)(?:tol([0-9.]+))?", mode):  # "rowN[tolX]": the lattice on every N-th row
+            tol = {"lattice_tol": float(m[2])} if m[2] else {}
+            modes[mode] = RegisterOptions(matching=DenseOptions(row_step=int(m[1]), **tol))
         elif re.fullmatch(r"tol[0-9.]+", mode):
             modes[mode] = RegisterOptions(matching=DenseOptions(lattice_tol=float(mode[3:])))
         elif re.fullmatch(r"it\d+", mode):  # "itN": N resampling rounds of the every-pixel pass

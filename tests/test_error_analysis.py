@@ -88,6 +88,7 @@ def test_recovers_the_real_field(real_registrations, client, name, variant):
     f = field_errors(syn, dx, dy, truth_ok)
     share, rmse, over = f["groups"]["matched"]
     cal_x, cal_y = f["calibration"]
+    print(name, variant, "matched share", share, "RMSE", rmse, "> 1 px", over, "calibration", cal_x, cal_y, "all", f["groups"]["all"])
     if name == "s2" and variant == "clean":
         # measured: matched 86 % of the overlap at 0.04-0.06 px RMSE (two code revisions), none
         # off by 1 px, calibration 1.07-1.29 (x), 1.23-1.56 (y)

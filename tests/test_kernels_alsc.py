@@ -516,3 +516,28 @@ def test_fill_does_not_depend_on_the_split(scene: Scene) -> None:
             fill_window(base, dist, p, c, (150, 156, c0, c1), options=options, col_step=k)
         np.testing.assert_array_equal(c, whole_c)
         np.testing.assert_array_equal(p, whole_p)
+
+
+def test_growth_on_a_lattice_of_rows_and_columns(scene: Scene) -> None:
+    """``grow`` matches only the lattice's rows and columns; a seed off them moves to the lattice
+    pixel above and left of it, its start carried there by its own affine."""
+    from geocoder.match.grow import grow_window, seed_rows
+
+    options = AlscOptions(radius=7)
+    base, dist = scene.base.astype(np.float32), scene.dist.astype(np.float32)
+    h, w = base.shape
+    k, rstep, origin = 4, 3, (1, 2)  # lattice rows 1, 4, 7, ...; columns 2, 6, 10, ...
+    r, c = 102, 103  # two rows below and one column right of the lattice pixel (100, 102)
+    seed = seed_rows(np.array([r]), np.array([c]), scene.truth(np.array([c]), np.array([r])))
+    params = np.full((h, w, len(FIELDS)), np.nan)
+    code = np.full((h, w), -1, dtype=np.int8)
+    region = (80, 130, 80, 130)
+    new = grow_window(base, dist, seed, params, code, region, options=options, lattice_origin=origin, col_step=k,
+                      row_step=rstep)
+    rows, cols = np.nonzero(code == 0)
+    assert new == rows.size > 100 and code[100, 102] == 0
+    assert ((rows - origin[0]) % rstep == 0).all() and ((cols - origin[1]) % k == 0).all()
+    assert (code[(np.arange(h) - origin[0]) % rstep != 0] == -1).all()  # never tried between the lattice rows
+    truth = scene.truth(cols, rows)
+    err = np.hypot(params[rows, cols, 0] - truth[:, 0], params[rows, cols, 1] - truth[:, 1])
+    assert err.max() < 0.05  # noise-free: full matches' accuracy (test_noise_free_accuracy)

@@ -11,7 +11,7 @@ from conftest import read_band
 from geocoder.kernels import fieldlsq, window_sums
 from geocoder.kernels.alsc import AlscOptions, alsc
 from geocoder.kernels.fieldlsq import field_lsq, template_solution_reference
-from geocoder.match.densify import lattice_start
+from geocoder.match.densify import lattice_start, rows_between
 from geocoder.simulate.warp import make_pair
 
 S2 = "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif"
@@ -163,6 +163,33 @@ def test_lattice_start_interpolates_along_lines():
     assert not started[2].any()
     x0, _, started = lattice_start(x, y, a11, a21, matched, max_gap=8, max_extend=0)
     assert not started[0, 9:24].any()
+
+
+def test_rows_between_the_lattice_rows_start_from_both_sides_or_the_one_there_is():
+    h, w, step = 9, 5, 3
+    first = 4  # global rows 4..12: lattice rows 6, 9, 12 at array rows 2, 5, 8
+    rows = np.arange(first, first + h, dtype=float)[:, None]
+    x = np.where(rows % step == 0, 10.0 + 0.5 * rows + np.zeros(w), np.nan)
+    y = np.where(rows % step == 0, 2.0 * rows + np.zeros(w), np.nan)
+    started = np.isfinite(x)
+    started[5, 3] = False  # row 9 failed at column 3: rows 7, 8 take row 6's, rows 10, 11 row 12's
+    x[5, 3] = np.nan
+    x0, y0, st = rows_between(x, y, started, first, step, height=13)
+    # array rows 0, 1 (global 4, 5): the lattice row above (3) is outside the arrays, not started
+    assert not st[:2].any() and np.isnan(x0[:2]).all()
+    # between two started lattice rows: linear across the lines
+    np.testing.assert_allclose(x0[2:, :3], 10.0 + 0.5 * rows[2:] + np.zeros((7, 3)))
+    np.testing.assert_allclose(y0[6:8, 4], 2.0 * rows[6:8, 0])
+    np.testing.assert_allclose(x0[3:5, 3], x[2, 3])  # the displacement of the one there is
+    np.testing.assert_allclose(x0[6:8, 3], x[8, 3])
+    np.testing.assert_allclose(y0[3:5, 3], y[2, 3] + [1.0, 2.0])
+    np.testing.assert_allclose(y0[6:8, 3], y[8, 3] - [2.0, 1.0])
+    assert not st[5, 3] and np.isnan(x0[5, 3])  # a lattice row keeps its own verdict
+    assert st[2:].sum() == 7 * w - 1
+    # the scene's last rows past its last lattice row take that row's start
+    x0, _, st = rows_between(x[:7], y[:7], started[:7], first, step, height=11)
+    assert st[6, :3].all() and not st[6, 3] and np.allclose(x0[6, :3], x[5, :3])
+    assert rows_between(x, y, started, first, 1, height=13)[0] is x  # every row on the lattice
 
 
 def test_lattice_start_carries_a_long_run_along_its_chord_as_far_as_its_curvature_allows():

@@ -24,7 +24,7 @@ from ..kernels.alsc import AlscOptions
 from ..kernels.fieldlsq import FieldLsqResult, field_lsq
 from ..kernels.fieldlsq_bands import field_lsq_bands
 
-__all__ = ["lattice_start", "densify_window"]
+__all__ = ["lattice_start", "rows_between", "densify_window"]
 
 
 #: Past a line's first and last match the start follows the match's affine for this many px;
@@ -170,6 +170,61 @@ def lattice_start(x: np.ndarray, y: np.ndarray, a11: np.ndarray, a21: np.ndarray
                    zero if sigma_y is None else np.asarray(sigma_y, np.float64), np.asarray(matched, np.bool_),
                    int(max_gap), int(max_extend), x0, y0, started)
     return x0, y0, started
+
+
+def rows_between(x0: np.ndarray, y0: np.ndarray, started: np.ndarray, first_row: int, row_step: int,
+                 height: int, origin: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Starts of the scan lines between the lattice's rows, from the lattice rows on either side.
+
+    The lattice's rows are the global rows ``(r - origin) % row_step == 0``; a line between two of them
+    starts where both are started from their linear interpolation across the lines, where
+    one is, from that one (so does a line past the scene's last lattice row). Every start is
+    verified by the match, and the every-pixel pass averages the starts over its template's
+    rows first. A line whose lattice row above or below is in the scene but not in the arrays
+    is not started (the caller reads a lattice row more on either side).
+
+    Parameters
+    ----------
+    x0, y0 : float64 (h, w)
+        Starts of the lattice rows (:func:`lattice_start`), NaN elsewhere.
+    started : bool (h, w)
+    first_row : int
+        Global row of the arrays' first row.
+    row_step : int
+    height : int
+        Rows of the scene (a lattice row past it does not exist).
+    origin : int
+        A global lattice row.
+
+    Returns
+    -------
+    x0, y0, started : new arrays, the lattice rows unchanged
+    """
+    h = x0.shape[0]
+    i = np.arange(h)
+    off = (first_row + i - origin) % row_step
+    rows = i[off > 0]
+    if row_step == 1 or rows.size == 0:
+        return x0, y0, started
+    above, below = rows - off[rows], rows - off[rows] + row_step
+    f = (off[rows] / row_step)[:, None]
+    # a line whose lattice row on either side is in the scene but not in the arrays is left
+    # alone: its start must not depend on the window
+    known = (((above >= 0) | (first_row + above < 0)) & ((below < h) | (first_row + below >= height)))[:, None]
+    has_above = known & started[np.clip(above, 0, h - 1)]
+    has_below = known & (below < h)[:, None] & started[np.clip(below, 0, h - 1)]
+    out = []
+    # displacements across the lines: ``y`` is a position, one more for every line down
+    for v, shift in ((x0, 0.0), (y0, 1.0)):
+        va = v[np.clip(above, 0, h - 1)] + shift * off[rows][:, None]
+        vb = v[np.clip(below, 0, h - 1)] - shift * (row_step - off[rows])[:, None]
+        new = v.copy()
+        new[rows] = np.where(has_above & has_below, (1.0 - f) * va + f * vb,
+                             np.where(has_above, va, np.where(has_below, vb, np.nan)))
+        out.append(new)
+    start = started.copy()
+    start[rows] = has_above | has_below
+    return out[0], out[1], start
 
 
 def densify_window(

@@ -122,8 +122,8 @@ def _quality(p):
 @numba.njit(nogil=True, cache=True)
 def grow(
     base, dist, seeds, params, code, tries, region, step, lattice_origin,
-    neighbours, max_tries, col_step, param_stride, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho, max_sigma,
-    min_det,
+    neighbours, max_tries, col_step, row_step, param_stride, radius, radius_y, cubic, max_iter, tol, max_shift, min_rho,
+    max_sigma, min_det,
 ):
     """Grow matches from ``seeds`` inside ``region``; returns the number of new matches.
 
@@ -145,13 +145,16 @@ def grow(
     region : int64[4]
         ``row0, row1, col0, col1`` (half open, base window) where matches may be made.
     step : int
-        Lattice spacing; only pixels with ``(row - lattice_origin[0]) % step == 0`` and
+        Lattice spacing; only pixels with ``(row - lattice_origin[0]) % (step * row_step) == 0`` and
         ``(col - lattice_origin[1]) % (step * col_step) == 0`` are matched.
     neighbours : int64 (m, 2)
         Neighbour offsets in lattice units (4- or 8-neighbourhood).
     col_step : int
         Extra spacing of the lattice columns (along the scan line): the columns between are
-        left to :func:`geocoder.match.fill.fill_lines`.
+        left to :func:`geocoder.match.fill.fill_lines` or :mod:`geocoder.match.densify`.
+    row_step : int
+        Extra spacing of the lattice rows (across the scan lines): the rows between start from
+        their neighbours' (:func:`geocoder.match.densify.rows_between`).
     """
     h, w = code.shape
     p0 = lattice_origin[1] % param_stride
@@ -176,6 +179,12 @@ def grow(
             c -= shift
             init[F_X] -= init[F_A11] * shift
             init[F_Y] -= init[F_A21] * shift
+        # and one between lattice rows to the lattice row above
+        shift = (r - lattice_origin[0]) % (step * row_step) if row_step > 1 else 0
+        if shift != 0:
+            r -= shift
+            init[F_X] -= init[F_A12] * shift
+            init[F_Y] -= init[F_A22] * shift
         if r < r0 or r >= r1 or c < c0 or c >= c1 or code[r, c] == _ACCEPTED:
             continue
         if (r - lattice_origin[0]) % step != 0 or (c - lattice_origin[1]) % step != 0:
@@ -215,7 +224,7 @@ def grow(
             key = _quality(out)
         # (r, c) is accepted: queue its unmatched neighbours with it as the parent
         for n in range(neighbours.shape[0]):
-            rr = r + neighbours[n, 0] * step
+            rr = r + neighbours[n, 0] * step * row_step
             cc = c + neighbours[n, 1] * step * col_step
             if rr < r0 or rr >= r1 or cc < c0 or cc >= c1:
                 continue
@@ -239,6 +248,7 @@ def grow_window(
     neighbours: int = 4,
     max_tries: int = 2,
     col_step: int = 1,
+    row_step: int = 1,
     param_stride: int = 1,
 ) -> int:
     """Python entry to :func:`grow` with options unpacked; returns the number of new matches.
@@ -261,7 +271,7 @@ def grow_window(
         grow(
             bands(base), samples(bands(dist)), np.ascontiguousarray(seeds, dtype=np.float64), params, code, tries,
             np.asarray(region, dtype=np.int64), int(step), np.asarray(lattice_origin, dtype=np.int64),
-            offsets, int(max_tries), int(col_step), int(param_stride), *o.kernel_args(),
+            offsets, int(max_tries), int(col_step), int(row_step), int(param_stride), *o.kernel_args(),
         )
     )
 
