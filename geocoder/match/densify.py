@@ -172,6 +172,37 @@ def lattice_start(x: np.ndarray, y: np.ndarray, a11: np.ndarray, a21: np.ndarray
     return x0, y0, started
 
 
+@numba.njit(nogil=True, cache=True)
+def _rows_between(x, y, started, first_row, row_step, height, origin):  # pragma: no cover - compiled
+    h, w = x.shape
+    for i in range(h):
+        off = (first_row + i - origin) % row_step
+        if off == 0:
+            continue
+        above, below = i - off, i - off + row_step
+        # a line whose lattice row on either side is in the scene but not in the arrays is left
+        # alone: its start must not depend on the window
+        known = (above >= 0 or first_row + above < 0) and (below < h or first_row + below >= height)
+        f = off / row_step
+        for c in range(w):
+            a = known and above >= 0 and started[above, c]
+            b = known and below < h and started[below, c]
+            # displacements across the lines: ``y`` is a position, one more for every line down
+            if a and b:
+                x[i, c] = (1.0 - f) * x[above, c] + f * x[below, c]
+                y[i, c] = (1.0 - f) * (y[above, c] + off) + f * (y[below, c] - (row_step - off))
+            elif a:
+                x[i, c] = x[above, c]
+                y[i, c] = y[above, c] + off
+            elif b:
+                x[i, c] = x[below, c]
+                y[i, c] = y[below, c] - (row_step - off)
+            else:
+                x[i, c] = np.nan
+                y[i, c] = np.nan
+            started[i, c] = a or b
+
+
 def rows_between(x0: np.ndarray, y0: np.ndarray, started: np.ndarray, first_row: int, row_step: int,
                  height: int, origin: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Starts of the scan lines between the lattice's rows, from the lattice rows on either side.
@@ -200,31 +231,11 @@ def rows_between(x0: np.ndarray, y0: np.ndarray, started: np.ndarray, first_row:
     -------
     x0, y0, started : new arrays, the lattice rows unchanged
     """
-    h = x0.shape[0]
-    i = np.arange(h)
-    off = (first_row + i - origin) % row_step
-    rows = i[off > 0]
-    if row_step == 1 or rows.size == 0:
+    if row_step == 1:
         return x0, y0, started
-    above, below = rows - off[rows], rows - off[rows] + row_step
-    f = (off[rows] / row_step)[:, None]
-    # a line whose lattice row on either side is in the scene but not in the arrays is left
-    # alone: its start must not depend on the window
-    known = (((above >= 0) | (first_row + above < 0)) & ((below < h) | (first_row + below >= height)))[:, None]
-    has_above = known & started[np.clip(above, 0, h - 1)]
-    has_below = known & (below < h)[:, None] & started[np.clip(below, 0, h - 1)]
-    out = []
-    # displacements across the lines: ``y`` is a position, one more for every line down
-    for v, shift in ((x0, 0.0), (y0, 1.0)):
-        va = v[np.clip(above, 0, h - 1)] + shift * off[rows][:, None]
-        vb = v[np.clip(below, 0, h - 1)] - shift * (row_step - off[rows])[:, None]
-        new = v.copy()
-        new[rows] = np.where(has_above & has_below, (1.0 - f) * va + f * vb,
-                             np.where(has_above, va, np.where(has_below, vb, np.nan)))
-        out.append(new)
-    start = started.copy()
-    start[rows] = has_above | has_below
-    return out[0], out[1], start
+    x, y, start = np.array(x0, dtype=np.float64), np.array(y0, dtype=np.float64), np.array(started, dtype=np.bool_)
+    _rows_between(x, y, start, int(first_row), int(row_step), int(height), int(origin))
+    return x, y, start
 
 
 def densify_window(
