@@ -86,9 +86,9 @@ class DenseOptions:
         ``row_step``-th); the lines between start the every-pixel pass from the lattice lines on
         either side (:func:`geocoder.match.densify.rows_between`). Only with ``col_step > 1`` and
         ``densify="field"`` (:attr:`lattice_rows`); full growth and ``"step"`` match every line.
-        Default 2 with ``lattice_tol`` 0.005: against every line at 0.01, the region growing's
-        task time on the 2048^2 bench pair 8.2-8.7 -> 6.0-6.5 s, the job 14.5-15.3 -> 13.0-14.1
-        s; on the nine simulated cases of ``bench_dense_cases.py`` the same matched RMSE
+        Default 2 with ``lattice_tol`` 0.005: against every line at 0.01 (2048^2 bench pair, 2
+        workers, three interleaved pairs of runs) the region growing's task time 8.2 -> 5.7 s,
+        the job 13.4 -> 12.0 s; on the nine simulated cases of ``bench_dense_cases.py`` the same matched RMSE
         (+-0.001 px) and coverage of the textured overlap the same or up to 0.6 points higher;
         on the real-field check (``tests/test_error_analysis.py``, S2 clean) 0.0447 -> 0.0476 px,
         calibration y 1.15 -> 1.20: a real field's line-to-line structure is what the lines
