@@ -282,6 +282,9 @@ def current_client() -> Client | None:
 #: Single-task items :func:`compute_as_completed` keeps in flight per worker thread (a bound on the
 #: results and inputs waiting on a worker, and enough queued work to hide the round trips).
 IN_FLIGHT_PER_THREAD = 8
+#: Seconds :func:`compute_as_completed` trusts the scheduler's count of worker threads: asking on
+#: every finished task cost a round trip each (~10 ms; 2.5 s of a 23 s four-scene mosaic).
+THREADS_TTL_S = 0.5
 #: Fewer tasks than this many per worker thread are kept one per thread in flight (see
 #: :func:`compute_as_completed`); from ``FEW_PER_THREAD * IN_FLIGHT_PER_THREAD`` on, the full window.
 FEW_PER_THREAD = 4
@@ -311,8 +314,12 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     shared = not all(_single_task(t) for _, t in items)
     running: dict[int, tuple[str, Any]] = {}  # id(future) -> (key, future)
 
-    def threads() -> int:
-        return max(1, sum(client.nthreads().values()))
+    asked = [-float("inf"), 1]  # when the scheduler was last asked, and its answer
+
+    def threads() -> int:  # a round trip to the scheduler, so asked at most every THREADS_TTL_S
+        if time.monotonic() - asked[0] > THREADS_TTL_S:
+            asked[:] = [time.monotonic(), max(1, sum(client.nthreads().values()))]
+        return asked[1]
 
     # a stage of few tasks per thread (a handful of tiles, each seconds long) runs one per thread,
     # the next to the thread that frees first: the scheduler hands every worker its share at
