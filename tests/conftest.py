@@ -51,3 +51,24 @@ def read_band(path: Path, band: int = 1, window: tuple[int, int, int, int] | Non
     with rasterio.open(path) as src:
         win = None if window is None else Window(window[2], window[0], window[3] - window[2], window[1] - window[0])
         return src.read(band, window=win).astype(np.float64)
+
+
+@pytest.fixture(scope="session")
+def s2_turbulence(shared_data, tmp_path_factory, client):
+    """A real S2 crop (256 px) warped with scan-line turbulence of known truth (seed 21), registered on
+    the test cluster (tile 128), and the report of its store against the truth.
+
+    ``test_report.py`` and ``test_report_browser.py`` look at the same run and the same page: a
+    process that runs both computes them once. Returns ``(directory, store, PairFiles, report directory)``;
+    the report directory is the return value of :func:`geocoder.report`. Read-only for the tests.
+    """
+    from pairs import real_pair
+
+    from geocoder import register, report
+
+    d = tmp_path_factory.mktemp("s2-turbulence")
+    files = real_pair(shared_data, d, which="s2", size=256, seed=21, turbulence=(1.0, 3.0))
+    out = d / "out.zarr"
+    register(files.base, files.distorted, out=out, tile=128, client=client, show_progress=False)
+    where = report(out, d / "report", truth=(files.pair.dx, files.pair.dy))
+    return d, out, files, where

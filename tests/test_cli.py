@@ -22,68 +22,105 @@ def run(*args, cwd=None, env=None):
                           env=env, timeout=600)
 
 
-def leftovers(directory):
-    return [p for p in os.listdir(directory) if p.startswith(".")]
+def listed(after: dict, sub: str) -> set[str]:
+    """The names directly in ``sub`` of a :func:`cli_batch.snapshot` of its parent."""
+    return {k[len(sub) + 1:].split("/")[0] for k in after if k.startswith(sub + "/") and k != sub + "/"}
 
 
-def test_missing_file(tmp_path, client):
-    r = run("register", tmp_path / "nope.tif", tmp_path / "nope2.tif", "--out", tmp_path / "o.zarr", "--scheduler", client.scheduler.address)
+def leftovers(after: dict, sub: str) -> list[str]:
+    """Hidden names (a job directory, a lock, a partial store) in ``sub`` after a case."""
+    return [p for p in listed(after, sub) if p.startswith(".")]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, client):
+    """The command lines of the tests below that need no shared imagery, in one process (see cli_batch),
+    each test's files in a directory of its own: by name, (result, snapshot of the module's directory after it)."""
+    d = tmp_path_factory.mktemp("cli")
+    for sub in ("missing", "flat", "overlap", "demo", "satellite"):
+        (d / sub).mkdir()
+    write_geotiff(d / "flat" / "flat.tif", np.full((256, 256), 7.0, dtype=np.float32))
+    write_geotiff(d / "flat" / "tex.tif", synthetic_ortho((256, 256), seed=1))
+    img = synthetic_ortho((256, 256), seed=2)
+    write_geotiff(d / "overlap" / "a.tif", img, transform=Affine(1, 0, 0, 0, -1, 0), crs="EPSG:32633")
+    write_geotiff(d / "overlap" / "b.tif", img, transform=Affine(1, 0, 10000, 0, -1, 0), crs="EPSG:32633")
+    sched = ("--scheduler", client.scheduler.address)
+    demo = d / "demo"
+    cases = {
+        "missing": ["register", d / "missing/nope.tif", d / "missing/nope2.tif", "--out", d / "missing/o.zarr", *sched],
+        "flat": ["register", d / "flat/flat.tif", d / "flat/tex.tif", "--out", d / "flat/o.zarr", "--tile", 128, *sched],
+        "overlap": ["register", d / "overlap/a.tif", d / "overlap/b.tif", "--out", d / "overlap/o.zarr", "--tile", 128, *sched],
+        "demo": ["demo", "--size", 512, "--tile", 256, "--out", demo / "demo", *sched],
+        # the CLI's register on the demo's files
+        "demo register": ["register", demo / "demo/base.tif", demo / "demo/distorted.tif", "--out", demo / "again.zarr",
+                          "--tile", 256, "--resampling", "cubic", "--no-dense", *sched],
+        "synthetic": ["simulate", "satellite", "--ortho", "synthetic", "--out", d / "satellite/syn.zarr", "--seed", 1,
+                      "--pixel", 8, *sched],
+    }
+    return d, run_batch(cases, d)
+
+
+def test_missing_file(runs):
+    d, results = runs
+    r, after = results["missing"]
     assert r.returncode == 2
-    assert r.stderr.strip().splitlines()[-1] == f"geocoder: error: {tmp_path / 'nope.tif'}: no such file"
-    assert not (tmp_path / "o.zarr").exists()
+    assert r.stderr.strip().splitlines()[-1] == f"geocoder: error: {d / 'missing' / 'nope.tif'}: no such file"
+    assert "o.zarr" not in listed(after, "missing")
 
 
-def test_flat_image_is_refused_and_leaves_nothing(tmp_path, client):
-    write_geotiff(tmp_path / "flat.tif", np.full((256, 256), 7.0, dtype=np.float32))
-    write_geotiff(tmp_path / "tex.tif", synthetic_ortho((256, 256), seed=1))
-    r = run("register", tmp_path / "flat.tif", tmp_path / "tex.tif", "--out", tmp_path / "o.zarr", "--tile", 128, "--scheduler", client.scheduler.address)
+def test_flat_image_is_refused_and_leaves_nothing(runs):
+    _, results = runs
+    r, after = results["flat"]
     assert r.returncode == 2, r.stderr
     last = r.stderr.strip().splitlines()[-1]
     assert last.startswith("geocoder: error: ") and "flat.tif" in last and "is constant" in last
     assert "Traceback" not in r.stderr
-    assert not (tmp_path / "o.zarr").exists() and leftovers(tmp_path) == []
+    assert "o.zarr" not in listed(after, "flat") and leftovers(after, "flat") == []
 
 
-def test_no_overlap(tmp_path, client):
-    img = synthetic_ortho((256, 256), seed=2)
-    write_geotiff(tmp_path / "a.tif", img, transform=Affine(1, 0, 0, 0, -1, 0), crs="EPSG:32633")
-    write_geotiff(tmp_path / "b.tif", img, transform=Affine(1, 0, 10000, 0, -1, 0), crs="EPSG:32633")
-    r = run("register", tmp_path / "a.tif", tmp_path / "b.tif", "--out", tmp_path / "o.zarr", "--tile", 128, "--scheduler", client.scheduler.address)
+def test_no_overlap(runs):
+    _, results = runs
+    r, after = results["overlap"]
     assert r.returncode == 2
     assert "does not overlap" in r.stderr.strip().splitlines()[-1]
-    assert not (tmp_path / "o.zarr").exists() and leftovers(tmp_path) == []
+    assert "o.zarr" not in listed(after, "overlap") and leftovers(after, "overlap") == []
 
 
-def test_demo_reports_error_against_truth(tmp_path, client):
-    r = run("demo", "--size", 512, "--tile", 256, "--out", tmp_path / "demo", "--scheduler", client.scheduler.address)
+def test_demo_reports_error_against_truth(runs):
+    d, results = runs
+    r, after = results["demo"]
     assert r.returncode == 0, r.stderr
     m = re.search(r"displacement field against truth: RMSE ([0-9.]+) px", r.stdout)
     assert m, r.stdout
     assert float(m.group(1)) < 0.1
-    assert (tmp_path / "demo" / "registered.zarr" / "zarr.json").exists()
+    assert "demo/demo/registered.zarr/zarr.json" in after
     # the CLI's register on the demo's files prints the summary
-    out = tmp_path / "again.zarr"
-    r = run("register", tmp_path / "demo/base.tif", tmp_path / "demo/distorted.tif", "--out", out, "--tile", 256, "--resampling",
-            "cubic", "--no-dense", "--scheduler", client.scheduler.address)
+    r, _ = results["demo register"]
     assert r.returncode == 0, r.stderr
-    assert "tie points:" in r.stdout and "robust RMS" in r.stdout and (out / "zarr.json").exists()
+    assert "tie points:" in r.stdout and "robust RMS" in r.stdout and (d / "demo" / "again.zarr" / "zarr.json").exists()
+
+
+@pytest.fixture(scope="module")
+def quiet_verbose_runs(tmp_path_factory, client):
+    """For both places of the flags, four command lines; all eight in one process (see cli_batch)."""
+    d = write_synthetic_pair(tmp_path_factory.mktemp("flags"), 256, seed=5, max_displacement=4)
+    common = ("--no-dense", "--tile", 128, "--scheduler", client.scheduler.address)
+    cases = {}
+    for where in ("before", "after"):
+        def register(out, *flags):
+            args = ["register", d / "base.tif", d / "dist.tif", "--out", d / f"{where}-{out}", *common]
+            return [*flags, *args] if where == "before" else [*args, *flags]
+
+        cases.update({f"{where} loud": register("loud.zarr"), f"{where} quiet": register("quiet.zarr", "-q"),
+                      f"{where} verbose": register("verbose.zarr", "-v"), f"{where} dashes": register("x.zarr", "--", "-q")})
+    return {name: r for name, (r, _) in run_batch(cases, d).items()}
 
 
 @pytest.mark.data
 @pytest.mark.parametrize("where", ["before", "after"])
-def test_quiet_and_verbose_before_or_after_the_subcommand(tmp_path, client, where):
+def test_quiet_and_verbose_before_or_after_the_subcommand(quiet_verbose_runs, where):
     """``geocoder -q register ...`` and ``geocoder register ... -q`` are the same command (issue 16)."""
-    write_synthetic_pair(tmp_path, 256, seed=5, max_displacement=4)
-    common = ("--no-dense", "--tile", 128, "--scheduler", client.scheduler.address)
-
-    def register(out, *flags):
-        args = ["register", tmp_path / "base.tif", tmp_path / "dist.tif", "--out", tmp_path / out, *common]
-        return [*flags, *args] if where == "before" else [*args, *flags]
-
-    # one process for the four command lines (see cli_batch)
-    runs = run_batch({"loud": register("loud.zarr"), "quiet": register("quiet.zarr", "-q"),
-                      "verbose": register("verbose.zarr", "-v"), "dashes": register("x.zarr", "--", "-q")}, tmp_path)
-    (loud, _), (quiet, _), (verbose, _), (dashes, _) = runs.values()
+    loud, quiet, verbose, dashes = (quiet_verbose_runs[f"{where} {k}"] for k in ("loud", "quiet", "verbose", "dashes"))
     for r in (loud, quiet, verbose):
         assert r.returncode == 0, r.stderr
     assert "tiles" in loud.stderr, "progress is shown by default"
@@ -92,9 +129,24 @@ def test_quiet_and_verbose_before_or_after_the_subcommand(tmp_path, client, wher
     assert dashes.returncode == 2, "after --, -q is an argument, not the option"
 
 
-def test_ingest_command(shared_data, tmp_path, client):
-    out = tmp_path / "rgb.zarr"
-    r = run("ingest", shared_data / "landsat7_rasterio/RGB.byte.tif", out, "--tile", 256, "--scheduler", client.scheduler.address)
+@pytest.fixture(scope="module")
+def shared_data_runs(shared_data, tmp_path_factory, client):
+    """The command lines of the tests below that read the shared imagery, in one process (see cli_batch)."""
+    d = tmp_path_factory.mktemp("cli-data")
+    sched = ("--scheduler", client.scheduler.address)
+    cases = {
+        "ingest": ["ingest", shared_data / "landsat7_rasterio/RGB.byte.tif", d / "rgb.zarr", "--tile", 256, *sched],
+        "simulate": ["simulate", "airborne", "--ortho", shared_data / "baviaanskloof/ngi_rgb_byte_1.tif", "--band", 1,
+                     "--out", d / "sim.zarr", "--seed", 5, "--sensor", "caesar", "--rows", 300, "--tile", 256, *sched],
+        "simulate missing": ["simulate", "satellite", "--ortho", d / "missing.tif", "--out", d / "x.zarr"],
+    }
+    return d, {name: r for name, (r, _) in run_batch(cases, d).items()}
+
+
+def test_ingest_command(shared_data_runs):
+    d, results = shared_data_runs
+    out = d / "rgb.zarr"
+    r = results["ingest"]
     assert r.returncode == 0, r.stderr
     assert "3 band(s), 718 x 791 px" in r.stdout
     from geocoder import open_scene
@@ -104,11 +156,10 @@ def test_ingest_command(shared_data, tmp_path, client):
 
 
 @pytest.mark.data
-def test_simulate_command(shared_data, tmp_path, client):
-    out = tmp_path / "sim.zarr"
-    r = run("simulate", "airborne", "--ortho", shared_data / "baviaanskloof/ngi_rgb_byte_1.tif", "--band", 1,
-            "--out", out, "--seed", 5, "--sensor", "caesar", "--rows", 300, "--tile", 256,
-            "--scheduler", client.scheduler.address)
+def test_simulate_command(shared_data_runs):
+    d, results = shared_data_runs
+    out = d / "sim.zarr"
+    r = results["simulate"]
     assert r.returncode == 0, r.stderr
     assert "truth ground_x/ground_y/ground_z" in r.stdout
     import xarray as xr
@@ -116,20 +167,19 @@ def test_simulate_command(shared_data, tmp_path, client):
     ds = xr.open_zarr(out, consolidated=False)
     assert ds.image.shape[1] == 300 and {"ground_x", "ground_y", "ground_z", "dem"} <= set(ds.variables)
     assert ds.attrs["sensor_class"] == "AirborneScanner" and ds.attrs["seed"] == 5
-    r = run("simulate", "satellite", "--ortho", tmp_path / "missing.tif", "--out", tmp_path / "x.zarr")
+    r = results["simulate missing"]
     assert r.returncode == 2 and "missing.tif: no such file" in r.stderr
 
 
-def test_simulate_synthetic_ortho(tmp_path, client):
-    out = tmp_path / "syn.zarr"
-    r = run("simulate", "satellite", "--ortho", "synthetic", "--out", out, "--seed", 1, "--pixel", 8,
-            "--scheduler", client.scheduler.address)
+def test_simulate_synthetic_ortho(runs):
+    d, results = runs
+    r, after = results["synthetic"]
     assert r.returncode == 0, r.stderr
     import xarray as xr
 
-    ds = xr.open_zarr(out, consolidated=False)
+    ds = xr.open_zarr(d / "satellite" / "syn.zarr", consolidated=False)
     assert ds.attrs["sensor_class"] == "LineScanner" and float(ds.image.isnull().mean()) < 0.05
-    assert leftovers(tmp_path) == []
+    assert leftovers(after, "satellite") == []
 
 
 def test_tile_from_options_unless_given(tmp_path, client):
@@ -144,13 +194,17 @@ def test_tile_from_options_unless_given(tmp_path, client):
     def tile_of(store):
         return xr.open_zarr(store, consolidated=False).dx.data.chunksize
 
-    r = run("register", base, dist, "--out", tmp_path / "option.zarr", "--no-dense", *scheduler, env=env)
+    # the three command lines of one environment in one process, one after the other (see cli_batch)
+    runs = run_batch({"register": ["register", base, dist, "--out", tmp_path / "option.zarr", "--no-dense", *scheduler],
+                      "ingest --tile": ["ingest", base, tmp_path / "flag.zarr", "--tile", 256, *scheduler],
+                      "ingest": ["ingest", base, tmp_path / "base.zarr", *scheduler]}, tmp_path, env=env)
+    r = runs["register"][0]
     assert r.returncode == 0, r.stderr
     assert tile_of(tmp_path / "option.zarr") == (128, 128)  # not the 384 of one 512 tile
-    r = run("ingest", base, tmp_path / "flag.zarr", "--tile", 256, *scheduler, env=env)  # the flag wins (same option)
+    r = runs["ingest --tile"][0]  # the flag wins (same option)
     assert r.returncode == 0, r.stderr
     assert xr.open_zarr(tmp_path / "flag.zarr", consolidated=False).image.data.chunksize == (1, 256, 256)
-    r = run("ingest", base, tmp_path / "base.zarr", *scheduler, env=env)
+    r = runs["ingest"][0]
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().endswith("384 x 384 px, tile 128")
     assert xr.open_zarr(tmp_path / "base.zarr", consolidated=False).image.data.chunksize == (1, 128, 128)

@@ -1,11 +1,9 @@
 """Composition of displacement fields: the kernel against analytic chains, and the tiled Dask stage."""
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 import xarray as xr
+from cli_batch import run_batch
 
 import geocoder
 from geocoder import InputError, Status
@@ -188,8 +186,10 @@ def test_compose_command_and_bad_input(tmp_path, client):
     ab = field_store(tmp_path / "ab.zarr", warp_ab(xs, ys))
     bc = field_store(tmp_path / "bc.zarr", affine_bc(xs, ys))
     out = tmp_path / "ac.zarr"
-    r = subprocess.run([sys.executable, "-m", "geocoder.cli", "-q", "compose", str(ab), str(bc), "--out", str(out),
-                        "--tile", "64", "--scheduler", client.scheduler.address], capture_output=True, text=True, timeout=300, check=False)
+    # both command lines in one process, one after the other (see cli_batch); the second, to the same output, is refused
+    runs = run_batch({"compose": ["-q", "compose", ab, bc, "--out", out, "--tile", 64, "--scheduler", client.scheduler.address],
+                      "again": ["-q", "compose", ab, bc, "--out", out, "--scheduler", client.scheduler.address]}, tmp_path)
+    r, _ = runs["compose"]
     assert r.returncode == 0, r.stderr
     assert "matched" in r.stdout and f"wrote {out}" in r.stdout
     ds = xr.open_zarr(out, consolidated=False)
@@ -199,8 +199,7 @@ def test_compose_command_and_bad_input(tmp_path, client):
     assert ok.mean() > 0.85
     np.testing.assert_allclose(ds.dx.values[ok], (d1[0] + ax)[ok], atol=1e-5)
     # a second run to the same output is refused; a store without dx is named
-    r = subprocess.run([sys.executable, "-m", "geocoder.cli", "-q", "compose", str(ab), str(bc), "--out", str(out),
-                        "--scheduler", client.scheduler.address], capture_output=True, text=True, timeout=300, check=False)
+    r, _ = runs["again"]
     assert r.returncode == 2 and str(out) in r.stderr
     bad = tmp_path / "bad.zarr"
     xr.Dataset({"foo": (("y", "x"), np.zeros((8, 8)))}).to_zarr(bad, zarr_format=3, consolidated=False)

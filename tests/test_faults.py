@@ -124,32 +124,40 @@ def test_out_dot_in_an_empty_working_directory_keeps_the_directory(work, tmp_pat
 
 def test_overwrite_replaces_only_geocoder_outputs(work, tmp_path, client):
     out = tmp_path / "o.zarr"
-    args = ["register", work / "base.tif", work / "dist.tif", "--out", out, "--no-dense", "--tile", 128,
+    args = ["-q", "register", work / "base.tif", work / "dist.tif", "--out", out, "--no-dense", "--tile", 128,
             "--scheduler", client.scheduler.address]
-    assert run(*args, cwd=tmp_path).returncode == 0
-    first = json.loads((out / "zarr.json").read_text())["attributes"]
-    assert first["geocoder_product"] == "register"
-    assert_error(run(*args, cwd=tmp_path), 2, str(out), "pass --overwrite")
-    r = run(*args, "--overwrite", cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
+    # the three command lines in one process, one after the other (see cli_batch)
+    runs = run_batch({"first": args, "again": args, "overwrite": [*args, "--overwrite"]}, tmp_path)
+    (first, after_first), (again, after_again), (overwrite, _) = runs.values()
+    assert first.returncode == 0, first.stderr
+    assert "o.zarr/zarr.json" in after_first
+    assert_error(again, 2, str(out), "pass --overwrite")
+    assert after_again == after_first  # refused: the first output untouched
+    assert overwrite.returncode == 0, overwrite.stderr
+    assert json.loads((out / "zarr.json").read_text())["attributes"]["geocoder_product"] == "register"
     assert sorted(os.listdir(tmp_path)) == ["o.zarr"]  # no old store, job directory or lock left
     # an input inside an output geocoder wrote: replacing that output would delete the input
     (out / "inner.tif").write_bytes((work / "base.tif").read_bytes())
-    assert_error(run("register", out / "inner.tif", work / "dist.tif", "--out", out, "--overwrite", cwd=tmp_path),
-                 2, "contains the input")
+    runs = run_batch({"inner": ["-q", "register", out / "inner.tif", work / "dist.tif", "--out", out, "--overwrite"],
+                      "nested": ["-q", "register", out, work / "dist.tif", "--out", out / "nested.zarr"]}, tmp_path)
+    assert_error(runs["inner"][0], 2, "contains the input")
     # an output inside an input store
-    assert_error(run("register", out, work / "dist.tif", "--out", out / "nested.zarr", cwd=tmp_path), 2, "lies inside the input")
+    assert_error(runs["nested"][0], 2, "lies inside the input")
 
 
 def test_demo_reruns_into_its_own_directory_only(tmp_path, client):
     sched = ["--scheduler", client.scheduler.address]
-    r = run("demo", "--size", 256, "--tile", 128, "--out", "d", *sched, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
-    r = run("demo", "--size", 256, "--tile", 128, "--out", "d", *sched, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr  # its own directory: run again in place
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "data.csv").write_text("1,2\n")
-    assert_error(run("demo", "--out", "other", *sched, cwd=tmp_path), 2, "geocoder did not write")
+    demo = ["-q", "demo", "--size", 256, "--tile", 128, "--out", "d", *sched]
+    # the three command lines in one process, one after the other (see cli_batch)
+    runs = run_batch({"first": demo, "again": demo, "other": ["-q", "demo", "--out", "other", *sched]}, tmp_path)
+    (first, after_first), (again, _), (other, after_other) = runs.values()
+    assert first.returncode == 0, first.stderr
+    assert "d/registered.zarr/zarr.json" in after_first
+    assert again.returncode == 0, again.stderr  # its own directory: run again in place
+    assert_error(other, 2, "geocoder did not write")
+    assert sorted(k for k in after_other if k.startswith("other")) == ["other/", "other/data.csv"]
     assert (tmp_path / "other" / "data.csv").read_text() == "1,2\n"
 
 
@@ -188,6 +196,9 @@ BAD_INPUT = {
 }
 
 
+UNREACHABLE = "unreachable scheduler"
+
+
 @pytest.fixture(scope="module")
 def bad_input_runs(work, client, data_loss_runs):  # after the data-loss cases, as in the file
     def full(args: list) -> list:
@@ -200,7 +211,10 @@ def bad_input_runs(work, client, data_loss_runs):  # after the data-loss cases, 
         return args
 
     before = snapshot(work)
-    return before, run_batch({name: ["-q", *full(args)] for name, (args, _) in BAD_INPUT.items()}, work)
+    cases = {name: ["-q", *full(args)] for name, (args, _) in BAD_INPUT.items()}
+    # the environment failure below, in the same process (one interpreter start less)
+    cases[UNREACHABLE] = ["-q", "register", "base.tif", "dist.tif", "--out", "o.zarr", "--scheduler", "tcp://127.0.0.1:1"]
+    return before, run_batch(cases, work)
 
 
 @pytest.mark.parametrize("case", list(BAD_INPUT))
@@ -214,12 +228,14 @@ def test_bad_input_is_one_line(bad_input_runs, case):
 
 # --- environment failures: exit 3, the job kept for a rerun ----------------------------------
 
-def test_unreachable_scheduler_is_reported_with_its_connect_timeout(work):
-    before = snapshot(work)
-    r = run("register", "base.tif", "dist.tif", "--out", "o.zarr", "--scheduler", "tcp://127.0.0.1:1", cwd=work)
+def test_unreachable_scheduler_is_reported_with_its_connect_timeout(bad_input_runs):
+    """``register base.tif dist.tif --out o.zarr --scheduler tcp://127.0.0.1:1`` in ``work``
+    (run in the bad-input table's process, after its cases)."""
+    before, runs = bad_input_runs
+    r, after = runs[UNREACHABLE]
     # the message states the client's own 10 s connect timeout (was Dask's 60 s); no clock is read here
     assert_error(r, 3, "tcp://127.0.0.1:1", "does not answer", "after 10 s")
-    assert snapshot(work) == before
+    assert after == before
 
 
 def test_a_second_job_to_the_same_output_is_refused(work, tmp_path, client):

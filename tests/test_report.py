@@ -12,7 +12,6 @@ table is there; the CLI writes it too and refuses to write over a user's directo
 from __future__ import annotations
 
 import re
-import subprocess
 import sys
 
 import numpy as np
@@ -140,17 +139,10 @@ def test_missing_matplotlib_names_the_extra(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def registered(shared_data, tmp_path_factory, client):
-    """A real S2 crop with scan-line turbulence of known truth, registered into a store."""
-    from pairs import real_pair
-
-    from geocoder import register
-
-    d = tmp_path_factory.mktemp("report")
-    files = real_pair(shared_data, d, which="s2", size=256, seed=21, turbulence=(1.0, 3.0))
-    out = d / "out.zarr"
-    register(files.base, files.distorted, out=out, tile=128, client=client, show_progress=False)
-    return d, out, files
+def registered(s2_turbulence):
+    """A real S2 crop with scan-line turbulence of known truth, registered into a store, and its report
+    against the truth (the session's, shared with test_report_browser.py)."""
+    return s2_turbulence
 
 
 def _png_ok(path) -> bool:
@@ -167,15 +159,12 @@ def _table(page: str, table_id: str) -> list[list[str]]:
 
 
 def test_report_of_a_registration_against_truth(registered, client):
-    from geocoder import report
-
-    d, out, files = registered
-    where = report(out, d / "rep", truth=(files.pair.dx, files.pair.dy))
-    page = (d / "rep" / "report.html").read_text()
+    d, out, files, where = registered  # where = report(out, d / "report", truth=(files.pair.dx, files.pair.dy))
+    page = (d / "report" / "report.html").read_text()
     for anchor in SECTIONS + ["truth"]:
         assert f'id="{anchor}"' in page, anchor
     for name in FIGURES + ["error.png"]:
-        assert f'src="{name}"' in page and _png_ok(d / "rep" / name), name
+        assert f'src="{name}"' in page and _png_ok(d / "report" / name), name
     assert "http" not in page.replace("http-equiv", "")  # nothing fetched from the network
     assert 'class="missing"' not in page  # base and distorted found from the summary
     # HSI: the registration is closer to the base than the polynomial alone and than the 1-px shift
@@ -196,32 +185,35 @@ def test_report_of_a_registration_against_truth(registered, client):
     rmse = float(cal["matched"][2]), float(cal["matched"][3])
     ratio = float(cal["matched"][6]), float(cal["matched"][7])
     assert max(rmse) < 0.3 and all(0.3 < q < 5 for q in ratio)
-    assert where == str(d / "rep")
+    assert where == str(d / "report")
 
 
-def test_report_cli_with_truth_store_missing_base_and_the_output_guard(registered, client):
+def test_report_cli_with_truth_store_missing_base_and_the_output_guard(registered, client, tmp_path):
     import xarray as xr
+    from cli_batch import run_batch
 
-    d, out, files = registered
+    _, out, files, _ = registered
+    d = tmp_path
     xr.Dataset({"dx": (("y", "x"), files.pair.dx), "dy": (("y", "x"), files.pair.dy)}).to_zarr(
         d / "truth.zarr", mode="w", zarr_format=3, consolidated=False)
-
-    def run(*args):
-        return subprocess.run([sys.executable, "-m", "geocoder.cli", "report", *map(str, args)], capture_output=True,
-                              text=True, timeout=600, check=False)
-
-    r = run(out, "--out", d / "cli", "--truth", d / "truth.zarr", "--base", d / "moved.tif", "--max-size", 128)
+    user = d / "mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("keep me")
+    # the three command lines in one process, one after the other (see cli_batch)
+    runs = run_batch({
+        "report": ["report", out, "--out", d / "cli", "--truth", d / "truth.zarr", "--base", d / "moved.tif", "--max-size", 128],
+        # an earlier report is replaced only with --overwrite; a user's directory never
+        "again": ["report", out, "--out", d / "cli"],
+        "user's directory": ["report", out, "--out", user, "--overwrite"],
+    }, d)
+    r, _ = runs["report"]
     assert r.returncode == 0, r.stderr
     page = (d / "cli" / "report.html").read_text()
     assert "calibration-table" in page and "overview level 1:2" in page  # 256 px shown from level 1
     assert 'class="missing">The base image is missing' in page and not (d / "cli" / "hsi.png").exists()
-    # an earlier report is replaced only with --overwrite; a user's directory never
-    r = run(out, "--out", d / "cli")
+    r, _ = runs["again"]
     assert r.returncode == 2 and "--overwrite" in r.stderr
-    user = d / "mine"
-    user.mkdir()
-    (user / "notes.txt").write_text("keep me")
-    r = run(out, "--out", user, "--overwrite")
+    r, _ = runs["user's directory"]
     assert r.returncode == 2 and "did not write" in r.stderr
     assert (user / "notes.txt").read_text() == "keep me" and sorted(p.name for p in user.iterdir()) == ["notes.txt"]
     with pytest.raises(OutputError):

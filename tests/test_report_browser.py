@@ -210,20 +210,21 @@ def _write_real_pair(shared: Path, d: Path) -> tuple[Path, Path]:
 
 
 @pytest.fixture(scope="module")
-def reports(shared_data, tmp_path_factory, client):
-    """Report directories of a real and of a simulated pair, registered on the test cluster."""
-    from pairs import real_pair
+def reports(shared_data, tmp_path_factory, client, s2_turbulence):
+    """Report directories of a real and of a simulated pair, registered on the test cluster.
 
+    The simulated one (a real S2 crop of SIZE px, seed 21, turbulence (1, 3), tile 128, the report
+    against the truth) is the session's ``s2_turbulence``, the run test_report.py looks at.
+    """
     from geocoder import register, report
 
     d = tmp_path_factory.mktemp("browser")
     base, dist = _write_real_pair(shared_data, d)
     register(base, dist, out=d / "real.zarr", tile=128, client=client, show_progress=False)
     report(d / "real.zarr", d / "real-report")
-    files = real_pair(shared_data, d, which="s2", size=SIZE, seed=21, turbulence=(1.0, 3.0))
-    register(files.base, files.distorted, out=d / "sim.zarr", tile=128, client=client, show_progress=False)
-    report(d / "sim.zarr", d / "sim-report", truth=(files.pair.dx, files.pair.dy))
-    return {"real": d / "real-report", "simulated": d / "sim-report"}
+    _, _, files, simulated = s2_turbulence
+    assert files.pair.dx.shape == (SIZE, SIZE)
+    return {"real": d / "real-report", "simulated": Path(simulated)}
 
 
 def _look(browser: Browser, directory: Path, shot: Path) -> tuple[list[dict], list[str], np.ndarray]:
