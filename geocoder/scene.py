@@ -362,11 +362,10 @@ class WindowReader:
     @property
     def array(self) -> zarr.Array:
         if self._array is None:
-            try:  # `geocoder ingest` writes Zarr v3
-                group = storage.open_group(self.store)
+            try:  # `geocoder ingest` writes Zarr v3; opened once per process (storage.open_array)
+                self._array = storage.open_array(self.store, self.variable)
             except FileNotFoundError:
-                group = zarr.open_group(self.store, mode="r")
-            self._array = group[self.variable]
+                self._array = zarr.open_group(self.store, mode="r")[self.variable]
             self._identity = array_identity(self.store, self.variable)
         return self._array
 

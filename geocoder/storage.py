@@ -20,7 +20,9 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import threading
 import uuid
+from collections import OrderedDict
 from typing import TYPE_CHECKING
 
 import fsspec
@@ -67,6 +69,52 @@ def open_group(location: str, mode: str = "r") -> "zarr.Group":
     protocol = location.split("://", 1)[0] if is_url(location) else None
     options = {"storage_options": dict(_STORE_OPTIONS[protocol])} if protocol in _STORE_OPTIONS else {}
     return zarr.open_group(location, mode=mode, zarr_format=3, **options)
+
+
+#: Opened arrays of local stores a process keeps (:func:`open_array`): a few per job's stores.
+_OPEN_ARRAYS_MAX = 64
+_open_arrays: OrderedDict[tuple, "zarr.Array"] = OrderedDict()
+_open_arrays_lock = threading.Lock()
+
+
+def open_array(location: str, name: str, mode: str = "r") -> "zarr.Array":
+    """Array ``name`` of a Zarr v3 group that geocoder wrote, opened once per process.
+
+    A tile task reads or writes a few windows of its job's stores; opening the group and then
+    the array read both metadata files through zarr's event loop every time (in a small-tile
+    job, a fifth of the workers' time). The array object of a local store is kept while its
+    metadata file is the same file, unchanged (device, inode, modification time and size:
+    :func:`geocoder.chunkcache.array_identity`), so a store written again at the same place
+    is opened anew; it keeps no chunk data, so windows written since are read as they are now.
+    Arrays on object stores are opened every time.
+    """
+    from .chunkcache import array_identity
+
+    identity = array_identity(location, name)
+    if identity is None:
+        return open_group(location, mode=mode)[name]
+    key = (mode, identity)
+    with _open_arrays_lock:
+        array = _open_arrays.get(key)
+        if array is not None:
+            _open_arrays.move_to_end(key)
+            return array
+    array = open_group(location, mode=mode)[name]
+    with _open_arrays_lock:
+        _open_arrays[key] = array
+        while len(_open_arrays) > _OPEN_ARRAYS_MAX:
+            _open_arrays.popitem(last=False)
+    return array
+
+
+class Arrays:
+    """The arrays of a group that geocoder wrote, by name, through :func:`open_array`."""
+
+    def __init__(self, location: str, mode: str = "r") -> None:
+        self.location, self.mode = location, mode
+
+    def __getitem__(self, name: str) -> "zarr.Array":
+        return open_array(self.location, name, self.mode)
 
 
 def join(location: str, *parts: str) -> str:

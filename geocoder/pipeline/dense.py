@@ -53,7 +53,7 @@ from ..match.fill import fill_window
 from ..match.grow import NFIELDS, SEED_COL, SEED_ROW, SEED_WIDTH, SEED_X, SEED_Y, UNVISITED, grow_window, seed_rows
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
-from ..storage import open_group
+from ..storage import Arrays, open_array, open_group
 from ..tiles import Tile, TileGrid, Window
 from .bands import Bands, band_windows
 from .correspond import distorted_window
@@ -320,7 +320,7 @@ def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, 
     Returns ``(new matches, outgoing halo seeds, whether the other slot was written)``.
     """
     h, w = shape
-    g = open_group(state, mode="r+")
+    g = Arrays(state, mode="r+")
     core_code = _read_core(g, tile, slot, k, "code")
     rows = seeds[:, SEED_ROW].astype(np.int64) - tile.row0
     cols = seeds[:, SEED_COL].astype(np.int64) - tile.col0
@@ -497,7 +497,7 @@ def _fill_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Window
     out[0] -= (np.arange(tile.col0, tile.col1) - dc0)[None, :]
     out[1] -= (np.arange(tile.row0, tile.row1) - dr0)[:, None]
     slot = int(slots[tile.iy, tile.ix])
-    g = open_group(state, mode="r+")
+    g = Arrays(state, mode="r+")
     g["fields"][1 - slot, :, tile.row0 : tile.row1, tile.col0 : tile.col1] = out
     g["code"][1 - slot, tile.row0 : tile.row1, tile.col0 : tile.col1] = code[csl]
     return new, 1 - slot
@@ -549,7 +549,7 @@ def _densify_task(tile: Tile, shape, base_reader: WindowReader, dist_reader: Win
                     res.sigma_x, res.sigma_y, res.rho]).astype(np.float32)
     code = res.code
     slot = 0 if lattice > 1 else 1 - int(slots[tile.iy, tile.ix])
-    _write_core(open_group(state, mode="r+"), tile, slot, 1, out, code, fields=_OUT_FIELDS)
+    _write_core(Arrays(state, mode="r+"), tile, slot, 1, out, code, fields=_OUT_FIELDS)
     return int((code == 0).sum()), slot
 
 
@@ -598,7 +598,7 @@ def _read_state(state: str, slots: np.ndarray, grid: TileGrid, r0: int, r1: int,
     """Fields (default ``x, y, sigma_x, sigma_y, rho``: (5, h, w)) and ``code`` (h, w) of a
     window of the state, every tile's part from its current slot; from the compact lattice
     state when ``lattice > 1`` (NaN and UNVISITED between its columns)."""
-    g = open_group(state, mode="r")
+    g = Arrays(state, mode="r")
     farr, carr = ("fields", "code") if lattice == 1 else ("lattice", "lattice_code")
     redges = np.r_[0, np.cumsum(grid.rows)]
     cedges = np.r_[0, np.cumsum(grid.cols)]
@@ -697,7 +697,7 @@ def _store_block(state: str, window: tuple[int, int, int, int], block: np.ndarra
     from .lines import field_window, tile_sums
 
     r0, r1, c0, c1 = window
-    open_group(state, mode="r+")["field"][:, r0:r1, c0:c1] = block
+    open_array(state, "field", mode="r+")[:, r0:r1, c0:c1] = block
     if mapping is None:
         return None
     # the row sums of the field as dense_field returns it: the polynomial where not usable

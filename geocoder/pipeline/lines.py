@@ -41,7 +41,7 @@ from ..quality.lines import (
     smooth_matches,
 )
 from ..status import Status
-from ..storage import open_group
+from ..storage import open_array
 from ..tiles import Window
 
 
@@ -187,7 +187,7 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     smooth = options.smooth // 2 + 1 if options.smooth else 0
     reach = options.max_hole + options.edge + 1 + smooth
     _, _, a, b = Window(r0, r1, c0, c1).grow(0, reach).clip(shape[0], width)
-    f = open_group(store, mode="r")["field"][:, r0:r1, a:b]
+    f = open_array(store, "field")[:, r0:r1, a:b]
     dx, dy, px, py, status, _ = field_window(f, mapping, (r0, r1), (a, b))
     sx, sy, rho = f[3], f[4], f[5]
     holes = _hole_block(dx, dy, px, py, status, sx, sy, max_hole=options.max_hole, edge=options.edge)

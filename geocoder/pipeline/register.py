@@ -631,7 +631,7 @@ def ingest_all(job: Job, scenes: dict[str, xr.DataArray], tile: int, client,
 
 def _write_tile(store: str, window: tuple[int, int, int, int], names: tuple[str, ...], *blocks: np.ndarray) -> np.ndarray:
     r0, r1, c0, c1 = window
-    g = storage.open_group(store, mode="r+")
+    g = storage.Arrays(store, mode="r+")
     for name, block in zip(names, blocks):
         g[name][..., r0:r1, c0:c1] = block
     status = blocks[names.index("status")]
