@@ -2,11 +2,10 @@
 
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from cli_batch import run_batch
 
 from geocoder.adjust.io import scanner_to_dict, write_observations, write_points
 from geocoder.simulate.adjust_experiments import (
@@ -80,31 +79,40 @@ def test_adjust_command_from_files(tmp_path, client):
                        "prior_sigma": (1 / np.sqrt(np.diag(f.prior_weight))).tolist()})
     (tmp_path / "frames.json").write_text(json.dumps({"frames": frames}))
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "geocoder.cli", "adjust", "--frames", tmp_path / "frames.json",
-                        "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv", "--out", out],
-                       capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stderr
-    s = json.loads((out / "summary.json").read_text())
-    assert s["converged"] and 0.7 < s["sigma0"] < 1.5
-    assert 30 < s["check_rms_total_m"] < 120  # check points' own 15 m + 0.58 px noise dominate
-    for name in ("frames.json", "points.csv", "residuals.csv", "report.md", "residuals_frame0.svg"):
-        assert (out / name).exists()
-    bad = subprocess.run([sys.executable, "-m", "geocoder.cli", "adjust", "--frames", tmp_path / "nope.json",
-                          "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv", "--out", out],
-                         capture_output=True, text=True)
-    assert bad.returncode == 2 and "nope.json: no such file" in bad.stderr
-    # outputs: an earlier adjustment is replaced only with --overwrite, a user's directory never
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "notes.txt").write_text("keep")
-    args = [sys.executable, "-m", "geocoder.cli", "adjust", "--frames", tmp_path / "frames.json",
-            "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv"]
-    for target, flags, message in ((out, [], "pass --overwrite"), (mine, ["--overwrite"], "geocoder did not write")):
-        refused = subprocess.run([*args, "--out", target, *flags], capture_output=True, text=True)
+    # the five command lines in one fresh process (see cli_batch), in the order they ran one by one
+    inputs = ["--frames", tmp_path / "frames.json", "--points", tmp_path / "points.csv", "--observations", tmp_path / "obs.csv"]
+    results = run_batch({
+        "run": ["adjust", *inputs, "--out", out],
+        "bad": ["adjust", "--frames", tmp_path / "nope.json", *inputs[2:], "--out", out],
+        # outputs: an earlier adjustment is replaced only with --overwrite, a user's directory never
+        "refused out": ["adjust", *inputs, "--out", out],
+        "refused mine": ["adjust", *inputs, "--out", mine, "--overwrite"],
+        "again": ["adjust", *inputs, "--out", out, "--overwrite"],
+    }, tmp_path, timeout=600)
+    r, after_run = results["run"]
+    assert r.returncode == 0, r.stderr
+    for name in ("frames.json", "points.csv", "residuals.csv", "report.md", "residuals_frame0.svg"):
+        assert f"out/{name}" in after_run
+    bad, _ = results["bad"]
+    assert bad.returncode == 2 and "nope.json: no such file" in bad.stderr
+    for case, message in (("refused out", "pass --overwrite"), ("refused mine", "geocoder did not write")):
+        refused, _ = results[case]
         assert refused.returncode == 2 and message in refused.stderr and "Traceback" not in refused.stderr
-    assert os.listdir(mine) == ["notes.txt"] and (out / "summary.json").exists()
-    again = subprocess.run([*args, "--out", out, "--overwrite"], capture_output=True, text=True, timeout=600)
+    _, after = results["refused mine"]
+    assert sorted(k for k in after if k.startswith("mine/") and k != "mine/") == ["mine/notes.txt"]
+    assert after["out/summary.json"] == after_run["out/summary.json"]  # the refusals left the adjustment as it was
+    again, after = results["again"]
     assert again.returncode == 0, again.stderr
+    assert sorted(k for k in after if k.startswith(".")) == []
+    # the summary the first run wrote: the --overwrite run replaced it with the same one, byte for byte
+    assert after["out/summary.json"] == after_run["out/summary.json"]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["converged"] and 0.7 < s["sigma0"] < 1.5
+    assert 30 < s["check_rms_total_m"] < 120  # check points' own 15 m + 0.58 px noise dominate
+    assert os.listdir(mine) == ["notes.txt"] and (out / "summary.json").exists()
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
     # the same adjustment gathered on one worker of a cluster
     from geocoder.adjust.run import adjust_files

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import os
 import struct
-import subprocess
-import sys
 import warnings
 
 import numpy as np
@@ -15,6 +13,7 @@ import rasterio
 import rioxarray
 import xarray as xr
 from affine import Affine
+from cli_batch import run_batch
 from conftest import read_band
 from rio_cogeo.cogeo import cog_validate
 
@@ -204,40 +203,65 @@ def test_no_crs_warns_and_writes_raw(tmp_path, client):
         np.testing.assert_array_equal(src.read(), raw.values)
 
 
-def run(*args):
-    return subprocess.run([sys.executable, "-m", "geocoder.cli", *map(str, args)], capture_output=True, text=True, timeout=300, check=False)
-
-
-def test_cli_export(s2_store, tmp_path, client):
-    store, image, _, _ = s2_store
+@pytest.fixture(scope="module")
+def cli_runs(s2_store, tmp_path_factory, client):
+    """The export command lines of the two tests below in one fresh process (see cli_batch), each
+    test's files in a directory of its own: by name, (result, snapshot of the module's directory after it)."""
+    d = tmp_path_factory.mktemp("cog-cli")
+    store = s2_store[0]
+    ex, raw = d / "export", d / "raw"
+    ex.mkdir()
+    raw.mkdir()
+    write_geotiff(raw / "raw.tif", np.arange(200 * 300, dtype=np.float32).reshape(200, 300))
+    ingest(raw / "raw.tif", raw / "raw.zarr", tile=128, client=client)
     sched = ("--scheduler", client.scheduler.address)
-    out = tmp_path / "s2.tif"
-    r = run("export", store, "--var", "image", "--cog", out, "--blocksize", 256, *sched)
+    cases = {
+        "export": ["export", store, "--var", "image", "--cog", ex / "s2.tif", "--blocksize", 256, *sched],
+        "exists": ["export", store, "--cog", ex / "s2.tif", *sched],
+        "no variable": ["export", store, "--var", "registered", "--cog", ex / "o.tif", *sched],
+        "no store": ["export", ex / "nope.zarr", "--cog", ex / "o.tif", *sched],
+        "unreferenced": ["export", raw / "raw.zarr", "--cog", raw / "raw-cog.tif", "--blocksize", 128, *sched],
+    }
+    return d, run_batch(cases, d)
+
+
+def _listed(after: dict, sub: str) -> dict[str, str]:
+    """The files and directories under ``sub`` of a :func:`cli_batch.snapshot` of its parent, with their hashes."""
+    return {k[len(sub) + 1:]: v for k, v in after.items() if k.startswith(sub + "/") and k != sub + "/"}
+
+
+def test_cli_export(s2_store, cli_runs):
+    store, image, _, _ = s2_store
+    d, results = cli_runs
+    out = d / "export" / "s2.tif"
+    r, after = results["export"]
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith(f"wrote {out}: 1 band(s) float32, 500 x 700 px, tile 256, 2 overview(s)")
+    written = _listed(after, "export")
+    assert sorted(written) == ["s2.tif"]
+
+    r, after = results["exists"]
+    assert r.returncode == 2 and r.stderr.strip() == f"geocoder: error: {out}: exists (a geocoder cog output); pass --overwrite to replace it"
+    r, after = results["no variable"]
+    assert r.returncode == 2 and r.stderr.strip() == f"geocoder: error: {store}: has no image variable 'registered'; it has: image"
+    r, after = results["no store"]
+    assert r.returncode == 2 and r.stderr.strip() == f"geocoder: error: {d / 'export' / 'nope.zarr'}: no such Zarr store"
+    assert _listed(after, "export") == written  # the refusals left s2.tif as the first command wrote it, and nothing else
+    # (the file on disk now: the refusals' runs have not touched it, see above)
     assert_cog(out)
     with rasterio.open(out) as src:
         np.testing.assert_array_equal(src.read(1), image)
 
-    r = run("export", store, "--cog", out, *sched)
-    assert r.returncode == 2 and r.stderr.strip() == f"geocoder: error: {out}: exists (a geocoder cog output); pass --overwrite to replace it"
-    r = run("export", store, "--var", "registered", "--cog", tmp_path / "o.tif", *sched)
-    assert r.returncode == 2 and r.stderr.strip() == f"geocoder: error: {store}: has no image variable 'registered'; it has: image"
-    r = run("export", tmp_path / "nope.zarr", "--cog", tmp_path / "o.tif", *sched)
-    assert r.returncode == 2 and r.stderr.strip() == f"geocoder: error: {tmp_path / 'nope.zarr'}: no such Zarr store"
-    assert sorted(os.listdir(tmp_path)) == ["s2.tif"]
 
-
-def test_cli_export_unreferenced_store_warns(tmp_path, client):
-    write_geotiff(tmp_path / "raw.tif", np.arange(200 * 300, dtype=np.float32).reshape(200, 300))
-    ingest(tmp_path / "raw.tif", tmp_path / "raw.zarr", tile=128, client=client)
-    r = run("export", tmp_path / "raw.zarr", "--cog", tmp_path / "raw-cog.tif", "--blocksize", 128,
-            "--scheduler", client.scheduler.address)
+def test_cli_export_unreferenced_store_warns(cli_runs):
+    d, results = cli_runs
+    raw = d / "raw"
+    r, _ = results["unreferenced"]
     assert r.returncode == 0, r.stderr
-    warning = f"geocoder: warning: {tmp_path / 'raw.zarr'}: has no CRS; the COG is written without georeference"
+    warning = f"geocoder: warning: {raw / 'raw.zarr'}: has no CRS; the COG is written without georeference"
     assert warning in r.stderr.splitlines() and "Warning" not in r.stderr
     with pytest.warns(rasterio.errors.NotGeoreferencedWarning):
-        src = rasterio.open(tmp_path / "raw-cog.tif")
+        src = rasterio.open(raw / "raw-cog.tif")
     with src:
         assert src.crs is None and src.overviews(1) == [2, 4]  # 300 -> 150 -> 75 px fits one 128 tile
 

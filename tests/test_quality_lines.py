@@ -9,6 +9,7 @@ from geocoder.quality.lines import LineCorrection, LineOptions, combine_sums, li
 def _line_field(tmp_path, dx, dy, status, sx, sy, chunk, options, *, rows=None, fits_from_rows=False, correlation=51):
     """:func:`geocoder.pipeline.lines.line_field` on a field written as the dense stage stores it
     (zero polynomial); ``rows`` None: no row corrections (NaN), else those of :func:`row_corrections`."""
+    import dask
     import dask.array as da
     import zarr
 
@@ -34,7 +35,9 @@ def _line_field(tmp_path, dx, dy, status, sx, sy, chunk, options, *, rows=None, 
     out = line_field(store, chunks, PolyMap.from_affine([[1, 0, 0], [0, 1, 0]]), rows, fits if fits_from_rows else None,
                      options, correlation=correlation)
     assert out["dx"].chunks == chunks
-    return {k: v.compute() for k, v in out.items()}, fits
+    # in one graph: the variables are slices of one stack, each tile's block computed once
+    (values,) = dask.compute(out)
+    return values, fits
 
 
 def _rows(shifts, usable, noise=0.0, sigma=0.05, seed=0):
