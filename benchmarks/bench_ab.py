@@ -9,8 +9,9 @@ seconds in all (Dask's task stream) and in the dense stage's two task kinds (the
 region growing and the every-pixel pass), RMSE of the matched pixels against the truth and
 their share of the overlap. A last table gives each configuration's mean.
 
-Configurations are named ``key=value`` lists of :class:`geocoder.pipeline.dense.DenseOptions`
-fields separated by ``,``; ``default`` is today's default.
+Configurations are named ``key=value`` lists, separated by ``,``, of fields of
+:class:`geocoder.pipeline.dense.DenseOptions` or scalar fields of
+:class:`geocoder.pipeline.register.RegisterOptions` (``passes=1``); ``default`` is today's default.
 
 Usage::
 
@@ -31,23 +32,33 @@ import numpy as np
 from bench_speed import make_case, overlap_mask  # the script's directory is on sys.path
 
 #: Task-name prefixes of the dense stage's tasks (``grow-<tile>-r<round>-<token>``, ``densify-...``).
-KINDS = {"growth": "grow-", "every pixel": "densify-"}
+KINDS = {"growth": "grow-", "every pixel": "densify-", "correspondence": "correspond"}
 
 
 def parse_options(spec: str):
-    """``"default"`` or ``"name=value,name=value"`` -> DenseOptions (values parsed as their field's type)."""
+    """``"default"`` or ``"name=value,name=value"`` -> RegisterOptions; a name is a field of
+    :class:`geocoder.pipeline.dense.DenseOptions` or a scalar field of
+    :class:`geocoder.pipeline.register.RegisterOptions` (values parsed as their field's type)."""
+    from dataclasses import replace
+
     from geocoder.pipeline.dense import DenseOptions
+    from geocoder.pipeline.register import RegisterOptions
 
     if spec == "default":
-        return DenseOptions()
-    types = {f.name: f.type for f in fields(DenseOptions)}
-    kw = {}
+        return RegisterOptions()
+    parse = {"int": int, "float": float, "str": str}
+    dense_types = {f.name: str(f.type) for f in fields(DenseOptions)}
+    register_types = {f.name: str(f.type) for f in fields(RegisterOptions) if str(f.type) in parse}
+    dense, register = {}, {}
     for item in spec.split(","):
         name, _, value = item.partition("=")
-        if name not in types:
-            raise SystemExit(f"{spec!r}: DenseOptions has no field {name!r}")
-        kw[name] = {"int": int, "float": float, "str": str}.get(str(types[name]), float)(value)
-    return DenseOptions(**kw)
+        if name in dense_types:
+            dense[name] = parse.get(dense_types[name], float)(value)
+        elif name in register_types:
+            register[name] = parse[register_types[name]](value)
+        else:
+            raise SystemExit(f"{spec!r}: neither DenseOptions nor RegisterOptions has a field {name!r}")
+    return replace(RegisterOptions(matching=DenseOptions(**dense)), **register)
 
 
 def task_seconds(stream: list[dict]) -> Counter:
@@ -73,10 +84,10 @@ def main() -> None:
 
     from distributed import Client, get_task_stream
 
-    from geocoder import RegisterOptions, Status, register
+    from geocoder import Status, register
     from geocoder.runtime import local_cluster
 
-    options = {c: RegisterOptions(matching=parse_options(c)) for c in args.configs}
+    options = {c: parse_options(c) for c in args.configs}
     rows: list[tuple] = []
     with tempfile.TemporaryDirectory(prefix="bench-ab-") as tmp:
         work = Path(tmp)
@@ -95,21 +106,21 @@ def main() -> None:
                     busy = task_seconds(ts.data)
                     matched = ds.status.values == Status.MATCHED
                     err = np.hypot(ds.dx.values - pair.dx, ds.dy.values - pair.dy)[matched]
-                    rows.append((rep + 1, name, wall, busy["all"], busy["growth"], busy["every pixel"],
+                    rows.append((rep + 1, name, wall, busy["all"], busy["correspondence"], busy["growth"], busy["every pixel"],
                                  float(np.sqrt(np.mean(err**2))), float((matched & overlap).sum() / overlap.sum())))
                     print(f"round {rep + 1}: {name}: {wall:.2f} s", flush=True)
-    head = "| wall s | task s | growth tasks s | every-pixel tasks s | RMSE matched px | matched share of overlap |"
+    head = "| wall s | task s | correspondence tasks s | growth tasks s | every-pixel tasks s | RMSE matched px | matched share of overlap |"
     print(f"\n{args.size}² pair, {args.workers} workers, configurations alternated\n")
     print("| round | configuration " + head)
-    print("|---:|---|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|")
     for rep, name, *v in rows:
-        print(f"| {rep} | {name} | {v[0]:.2f} | {v[1]:.2f} | {v[2]:.2f} | {v[3]:.2f} | {v[4]:.4f} | {100 * v[5]:.2f} % |")
+        print(f"| {rep} | {name} | {v[0]:.2f} | {v[1]:.2f} | {v[2]:.2f} | {v[3]:.2f} | {v[4]:.2f} | {v[5]:.4f} | {100 * v[6]:.2f} % |")
     print("\n| configuration " + head)
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for name in options:
         v = np.array([r[2:] for r in rows if r[1] == name])
         m = v.mean(axis=0)
-        print(f"| {name} | {m[0]:.2f} | {m[1]:.2f} | {m[2]:.2f} | {m[3]:.2f} | {m[4]:.4f} | {100 * m[5]:.2f} % |")
+        print(f"| {name} | {m[0]:.2f} | {m[1]:.2f} | {m[2]:.2f} | {m[3]:.2f} | {m[4]:.2f} | {m[5]:.4f} | {100 * m[6]:.2f} % |")
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ column measures.)
 
 Usage::
 
-    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1]
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1,passes1]
 """
 
 from __future__ import annotations
@@ -267,6 +267,8 @@ def main() -> None:
             modes[mode] = RegisterOptions(matching=DenseOptions(alsc=replace(alsc, max_sigma=float(mode[5:]))))
         elif re.fullmatch(r"tries\d+", mode):  # "triesN": attempts per lattice pixel
             modes[mode] = RegisterOptions(matching=DenseOptions(max_tries=int(mode[5:])))
+        elif re.fullmatch(r"passes\d+", mode):  # "passesN": correspondence passes (tie points for the polynomial)
+            modes[mode] = RegisterOptions(passes=int(mode[6:]))
     table, holes = [], []
     with tempfile.TemporaryDirectory(prefix="bench-dense-cases-") as tmp, local_cluster(args.workers) as cluster, \
             Client(cluster) as client:
