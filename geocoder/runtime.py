@@ -256,11 +256,16 @@ def is_cluster_failure(exc: BaseException) -> bool:
     from distributed.client import FutureCancelledError
     from distributed.comm.core import CommClosedError
 
+    try:  # the client closed itself on losing the scheduler; the next call on it raises this
+        from distributed.client import ClosedClientError
+    except ImportError:  # pragma: no cover - older distributed
+        ClosedClientError = CommClosedError
+
     try:
         from distributed.scheduler import KilledWorker
     except ImportError:  # pragma: no cover
         KilledWorker = CommClosedError
-    if isinstance(exc, (CommClosedError, FutureCancelledError, KilledWorker, asyncio.CancelledError)):
+    if isinstance(exc, (CommClosedError, ClosedClientError, FutureCancelledError, KilledWorker, asyncio.CancelledError)):
         return True
     # a call to the scheduler after the client closed its connections (it lost the scheduler)
     if type(exc) is RuntimeError and str(exc) == "ConnectionPool is closed":
@@ -363,7 +368,10 @@ def cancel_and_settle(client: Client, futures: list, collections: list, timeout:
     workers (the scheduler is lost) does not wait.
     """
     for fut in futures:
-        fut.cancel()
+        try:
+            fut.cancel()
+        except Exception:  # noqa: BLE001 - the client closed on losing its scheduler: the caller's error stands
+            return
     keys = {str(k) for c in collections for k in c.__dask_graph__().keys()}
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
