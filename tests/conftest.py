@@ -24,25 +24,6 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     compile_kernels()
 
 
-#: The longest test files, longest first (seconds of test time in CI, 2026-11-27: the per-test
-#: durations of a full run summed per file). Under ``--dist loadfile`` a file runs whole on one
-#: worker; xdist would otherwise order the files by their NUMBER of tests, which put the few long
-#: system tests (object store, cluster, line scanner, rendering) last, where one worker ran them
-#: while the other had nothing left. Longest first is the classic remedy; the rest keep their order.
-LONGEST_FIRST = (
-    "test_cluster.py", "test_faults.py", "test_object_store.py", "test_mosaic.py", "test_dense.py",
-    "test_mosaic_control.py", "test_mosaic_models.py", "test_simulate_render.py", "test_cli.py",
-    "test_mosaic_georef.py", "test_report_browser.py", "test_mosaic_neighbours.py", "test_mosaic_layers.py",
-    "test_examples.py", "test_register.py", "test_mosaic_resume.py",
-)
-
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The files of :data:`LONGEST_FIRST` first, in that order (a stable sort: tests within a file keep theirs)."""
-    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
-
-
 @pytest.fixture(scope="session")
 def client():
     """Two worker processes with one thread each, as on the CI machine: geocoder's own local
