@@ -76,7 +76,7 @@ def task_seconds(stream: list[dict]) -> Counter:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("configs", nargs="+", help='"default" or "field=value,field=value" of DenseOptions')
+    ap.add_argument("configs", nargs="+", help='"default" or "field=value,..." of DenseOptions or RegisterOptions')
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--size", type=int, default=2048)
     ap.add_argument("--workers", type=int, default=2)
