@@ -65,13 +65,30 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..geodesy import WGS84_A, WGS84_B, ecef_to_geodetic, ellipsoid_normal, rotation, unit
+from ..geodesy import WGS84_A, WGS84_B, ecef_to_geodetic, ellipsoid_normal, unit
 from .orbit import Orbit
 
 __all__ = ["KINDS", "LineScanner"]
 
 #: Scanner types: all columns of a row at once, or a scanning mirror.
 KINDS = ("pushbroom", "whiskbroom")
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of arrays of 3-vectors in the last axis, written out (several times faster)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _yaw_pitch_roll(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """``rotation(2, yaw) @ rotation(1, pitch) @ rotation(0, roll)`` in closed form, ``yaw.shape + (3, 3)``."""
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    R = np.empty(np.shape(yaw) + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = -sp, cp * sr, cp * cr
+    return R
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,16 +184,23 @@ class LineScanner:
         R : ndarray, shape ``t.shape + (3, 3)``
             Columns are the sensor x, y, z axes in ECEF; ``M = R^T`` of eq. (1).
         """
+        S, x_o, y_o, z_o, A = self._frames(t)
+        # [x_o y_o z_o] @ A written out: numpy's stacked 3 x 3 matrix products cost several times more
+        R = x_o[..., :, None] * A[..., 0, None, :] + y_o[..., :, None] * A[..., 1, None, :] \
+            + z_o[..., :, None] * A[..., 2, None, :]
+        return S, R
+
+    def _frames(self, t: ArrayLike) -> tuple[np.ndarray, ...]:
+        """:meth:`exterior` in parts: ``S``, the orbital frame's axes ``x_o, y_o, z_o`` (``t.shape + (3,)``,
+        ECEF) and the attitude deviation ``A`` (``t.shape + (3, 3)``); ``R = [x_o y_o z_o] A``."""
         t = np.asarray(t, dtype=np.float64)
         r, v = self.orbit.position_velocity_ecef(t)
         z_o = -unit(r)
-        y_o = unit(np.cross(z_o, v))
-        x_o = np.cross(y_o, z_o)
-        B = np.stack([x_o, y_o, z_o], axis=-1)
+        y_o = unit(_cross(z_o, v))
+        x_o = _cross(y_o, z_o)
         d = self.deviation_values(t)
         S = r + d[..., 0:1] * x_o + d[..., 1:2] * y_o - d[..., 2:3] * z_o
-        A = rotation(2, d[..., 5]) @ rotation(1, d[..., 4]) @ rotation(0, d[..., 3])
-        return S, B @ A
+        return S, x_o, y_o, z_o, _yaw_pitch_roll(d[..., 5], d[..., 4], d[..., 3])
 
     def look_angle(self, col: ArrayLike) -> np.ndarray:
         """Cross-track look angle ``psi = (col - (cols - 1) / 2) * ifov`` (radians)."""
@@ -224,9 +248,9 @@ class LineScanner:
         shape = row.shape
         t = self.time(row, col).ravel()
         psi = self.look_angle(col).ravel()
-        S, R = self.exterior(t)
-        u_s = np.stack([np.zeros_like(psi), np.sin(psi), np.cos(psi)], axis=-1)
-        u = np.einsum("nij,nj->ni", R, u_s)
+        S, x_o, y_o, z_o, A = self._frames(t)
+        u_a = A[:, :, 1] * np.sin(psi)[:, None] + A[:, :, 2] * np.cos(psi)[:, None]  # A (0, sin psi, cos psi)
+        u = x_o * u_a[:, 0:1] + y_o * u_a[:, 1:2] + z_o * u_a[:, 2:3]  # R u_s without forming R
 
         if terrain is None:
             h_t = np.broadcast_to(np.asarray(height, dtype=np.float64), shape).ravel().copy()
@@ -264,8 +288,11 @@ class LineScanner:
 
     # ----------------------------------------------------------- direct
     def _sensor_vector(self, t: np.ndarray, P: np.ndarray) -> np.ndarray:
-        S, R = self.exterior(t)
-        return np.einsum("nji,nj->ni", R, P - S)  # M (P - S), M = R^T
+        """``M (P - S)`` with ``M = R^T = A^T [x_o y_o z_o]^T``, without forming ``R``."""
+        S, x_o, y_o, z_o, A = self._frames(t)
+        w = P - S
+        orbital = np.stack([np.sum(x_o * w, axis=-1), np.sum(y_o * w, axis=-1), np.sum(z_o * w, axis=-1)], axis=-1)
+        return np.einsum("nji,nj->ni", A, orbital)
 
     def ground_to_image(
         self,
