@@ -13,11 +13,11 @@ pytestmark = [pytest.mark.cluster, pytest.mark.data]
 NGI = "baviaanskloof/ngi_rgb_byte_1.tif"
 
 
-def sampled_back(ds, ortho, transform, *, satellite=False):
-    """Ortho pixels -> ground (DEM height) -> image (direct mode) -> rendered value there."""
+def sampled_back(ds, ortho, transform, *, satellite=False, step=3):
+    """Ortho pixels (every ``step``-th) -> ground (DEM height) -> image (direct mode) -> rendered value there."""
     sensor, terrain = load_sensor(ds), load_terrain(ds)
     h, w = ortho.shape
-    ys, xs = np.mgrid[8 : h - 8 : 3, 8 : w - 8 : 3].astype(float)
+    ys, xs = np.mgrid[8 : h - 8 : step, 8 : w - 8 : step].astype(float)
     X, Y = pixel_to_world(transform, xs, ys)
     Z = terrain(X, Y)
     if satellite:
@@ -72,7 +72,8 @@ def test_satellite_render_and_seed(shared_data, tmp_path, client):
     np.testing.assert_array_equal(b1.ground_x.values, b2.ground_x.values)
     assert not np.array_equal(b1.ground_x.values, c.ground_x.values)
     ortho = read_band(path, 1)
-    v, o = sampled_back(a, ortho, rasterio.open(path).transform, satellite=True)
+    # 30 m image pixels on the 10 m ortho: every 6th ortho pixel is every 2nd image pixel (~210,000 points)
+    v, o = sampled_back(a, ortho, rasterio.open(path).transform, satellite=True, step=6)
     assert v.size > 10000
     assert np.sqrt(np.mean((v - o) ** 2)) < 0.25 * np.std(o)
     # the truth in the ortho CRS: back to ECEF and into the image gives the pixel itself
