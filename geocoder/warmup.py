@@ -10,7 +10,7 @@ Numba compiles one kernel at a time per process, and three kernels hold two thir
 (the region growing's ``grow`` ~35 s, the every-pixel pass's ``_solve_window`` ~16 s, the
 post-filter's ~15 s). :func:`compile_kernels` therefore compiles ``grow`` in a second process
 while this one compiles the other two and the small kernels, and only then runs the demo job,
-which finds all three in the cache and compiles what is left (about 60 s instead of 100 on two
+which finds all three in the cache and compiles what is left (72 s instead of 104 on two
 cores). Each part calls the kernels' own Python entry points, which fix the argument types,
 so the job uses the very signatures the parts compiled (``tests/test_warmup.py`` checks it).
 
