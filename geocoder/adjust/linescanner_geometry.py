@@ -288,11 +288,22 @@ class LineScanner:
 
     # ----------------------------------------------------------- direct
     def _sensor_vector(self, t: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """``M (P - S)`` with ``M = R^T = A^T [x_o y_o z_o]^T``, without forming ``R``."""
-        S, x_o, y_o, z_o, A = self._frames(t)
-        w = P - S
-        orbital = np.stack([np.sum(x_o * w, axis=-1), np.sum(y_o * w, axis=-1), np.sum(z_o * w, axis=-1)], axis=-1)
-        return np.einsum("nji,nj->ni", A, orbital)
+        """``M (P - S)``, shape (m, 3), for times ``t`` (m,) and ECEF points ``P`` (m, 3): the points in
+        the orbital frame, then the attitude's three rotations transposed one after the other
+        (``M = R^T = A^T [x_o y_o z_o]^T``, no 3 x 3 matrix per point)."""
+        t = np.asarray(t, dtype=np.float64)
+        r, v = self.orbit.position_velocity_ecef(t)
+        z_o = -unit(r)
+        y_o = unit(_cross(z_o, v))
+        x_o = _cross(y_o, z_o)
+        d = self.deviation_values(t)
+        w = P - (r + d[:, 0:1] * x_o + d[:, 1:2] * y_o - d[:, 2:3] * z_o)
+        u0, u1, u2 = (np.einsum("ni,ni->n", axis, w) for axis in (x_o, y_o, z_o))
+        cr, sr, cp, sp = np.cos(d[:, 3]), np.sin(d[:, 3]), np.cos(d[:, 4]), np.sin(d[:, 4])
+        cy, sy = np.cos(d[:, 5]), np.sin(d[:, 5])
+        a0, a1 = cy * u0 + sy * u1, -sy * u0 + cy * u1  # Rz(yaw)^T
+        b0, b2 = cp * a0 - sp * u2, sp * a0 + cp * u2  # Ry(pitch)^T
+        return np.stack([b0, cr * a1 + sr * b2, -sr * a1 + cr * b2], axis=-1)  # Rx(roll)^T
 
     def ground_to_image(
         self,

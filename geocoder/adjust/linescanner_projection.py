@@ -23,10 +23,6 @@ from .linescanner_geometry import LineScanner
 __all__ = ["project_with_times", "sensor_vector"]
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.sqrt(np.einsum("ni,ni->n", v, v))[:, None]
-
-
 def sensor_vector(sc: LineScanner, t: np.ndarray, ground: np.ndarray) -> np.ndarray:
     """``M(t) (P - S(t))``: ground points in the sensor frame at times ``t``.
 
@@ -42,19 +38,9 @@ def sensor_vector(sc: LineScanner, t: np.ndarray, ground: np.ndarray) -> np.ndar
     Returns
     -------
     ndarray, shape (m, 3)
-        ``(x_s, y_s, z_s)`` as ``LineScanner._sensor_vector``.
+        ``(x_s, y_s, z_s)``, computed by ``LineScanner._sensor_vector`` (the direct mode's own).
     """
-    r, v = sc.orbit.position_velocity_ecef(t)
-    z_o = -_unit(r)
-    y_o = _unit(np.cross(z_o, v))
-    x_o = np.cross(y_o, z_o)
-    d = sc.deviation_values(t)
-    w = ground - (r + d[:, 0:1] * x_o + d[:, 1:2] * y_o - d[:, 2:3] * z_o)
-    u0, u1, u2 = (np.einsum("ni,ni->n", axis, w) for axis in (x_o, y_o, z_o))
-    cr, sr, cp, sp, cy, sy = np.cos(d[:, 3]), np.sin(d[:, 3]), np.cos(d[:, 4]), np.sin(d[:, 4]), np.cos(d[:, 5]), np.sin(d[:, 5])
-    a0, a1 = cy * u0 + sy * u1, -sy * u0 + cy * u1  # Rz(yaw)^T
-    b0, b2 = cp * a0 - sp * u2, sp * a0 + cp * u2  # Ry(pitch)^T
-    return np.stack([b0, cr * a1 + sr * b2, -sr * a1 + cr * b2], axis=-1)  # Rx(roll)^T
+    return sc._sensor_vector(t, ground)
 
 
 def project_with_times(
