@@ -30,7 +30,7 @@ column measures.)
 
 Usage::
 
-    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1,passes1]
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1,passes1,sigma0.25,rho0.6,sigma0.25rho0.6]
 """
 
 from __future__ import annotations
@@ -262,9 +262,11 @@ def main() -> None:
             modes[mode] = RegisterOptions(matching=DenseOptions(densify_extend=int(mode[3:])))
         elif re.fullmatch(r"gap\d+", mode):  # "gapN": ... and across gaps of the lattice up to N px
             modes[mode] = RegisterOptions(matching=DenseOptions(densify_gap=int(mode[3:])))
-        elif re.fullmatch(r"sigma[0-9.]+", mode):  # "sigmaX": matches accepted up to sigma X px (lattice and every pixel)
+        elif m := re.fullmatch(r"(?:sigma([0-9.]+))?(?:rho([0-9.]+))?", mode):  # "sigmaXrhoY": accepted up to sigma
+            # X px, from correlation Y (lattice and every pixel); either may be left out
             alsc = DenseOptions().alsc
-            modes[mode] = RegisterOptions(matching=DenseOptions(alsc=replace(alsc, max_sigma=float(mode[5:]))))
+            alsc = replace(alsc, **({"max_sigma": float(m[1])} if m[1] else {}), **({"min_rho": float(m[2])} if m[2] else {}))
+            modes[mode] = RegisterOptions(matching=DenseOptions(alsc=alsc))
         elif re.fullmatch(r"tries\d+", mode):  # "triesN": attempts per lattice pixel
             modes[mode] = RegisterOptions(matching=DenseOptions(max_tries=int(mode[5:])))
         elif re.fullmatch(r"passes\d+", mode):  # "passesN": correspondence passes (tie points for the polynomial)
