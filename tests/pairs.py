@@ -19,6 +19,7 @@ from geocoder.simulate.warp import SyntheticPair, make_pair
 
 S2_REF = "s2_arosics/ref_S2A_20160608T153121_T33UUU_sub.tif"
 AERIAL = "baviaanskloof/ngi_rgb_byte_1.tif"
+LANDSAT = "landsat7_rasterio/RGB.byte.tif"
 
 
 @dataclass
@@ -32,7 +33,8 @@ def real_pair(shared: Path, out: Path, *, which: str, size: int, seed: int, marg
     """Crop a real image (no nodata inside), warp it with a known field, write both files.
 
     The base keeps the real georeference of the crop; the distorted file is a raw image
-    (no georeference), as a scanner frame before geocoding.
+    (no georeference), as a scanner frame before geocoding. ``"landsat"``: dark sea with bright
+    specks and the scene's nodata edge (0, made NaN) in the crop.
     """
     import rasterio
 
@@ -40,12 +42,16 @@ def real_pair(shared: Path, out: Path, *, which: str, size: int, seed: int, marg
         path, bands, origin = shared / S2_REF, [1], (300, 1100)
     elif which == "aerial":
         path, bands, origin = shared / AERIAL, [1, 2, 3], (60, 107)
+    elif which == "landsat":
+        path, bands, origin = shared / LANDSAT, [1], (300, 400)
     else:
         raise ValueError(which)
     r0, c0 = origin
     win = (r0, r0 + size + 2 * margin, c0, c0 + size + 2 * margin)
     src = np.stack([read_band(path, b, win) for b in bands])
-    assert (src > 0).all(), "the crop must be free of nodata"
+    if which == "landsat":
+        src = np.where(src > 0, src, np.nan).astype(np.float32)
+    assert (src > 0).all() or which == "landsat", "the crop must be free of nodata"
     pair = make_pair(src, shape=(size, size), seed=seed, margin=margin, **kw)
     with rasterio.open(path) as f:
         t = f.transform @ Affine.translation(c0 + margin, r0 + margin)
