@@ -193,14 +193,19 @@ class LineScanner:
     def _frames(self, t: ArrayLike) -> tuple[np.ndarray, ...]:
         """:meth:`exterior` in parts: ``S``, the orbital frame's axes ``x_o, y_o, z_o`` (``t.shape + (3,)``,
         ECEF) and the attitude deviation ``A`` (``t.shape + (3, 3)``); ``R = [x_o y_o z_o] A``."""
+        S, x_o, y_o, z_o, d = self._orbital_frame(t)
+        return S, x_o, y_o, z_o, _yaw_pitch_roll(d[..., 5], d[..., 4], d[..., 3])
+
+    def _orbital_frame(self, t: ArrayLike) -> tuple[np.ndarray, ...]:
+        """``S``, the orbital frame's axes ``x_o, y_o, z_o`` (ECEF) and the deviations ``d``
+        (``t.shape + (6,)``: the position's three offsets, then roll, pitch, yaw) at times ``t``."""
         t = np.asarray(t, dtype=np.float64)
         r, v = self.orbit.position_velocity_ecef(t)
         z_o = -unit(r)
         y_o = unit(_cross(z_o, v))
         x_o = _cross(y_o, z_o)
         d = self.deviation_values(t)
-        S = r + d[..., 0:1] * x_o + d[..., 1:2] * y_o - d[..., 2:3] * z_o
-        return S, x_o, y_o, z_o, _yaw_pitch_roll(d[..., 5], d[..., 4], d[..., 3])
+        return r + d[..., 0:1] * x_o + d[..., 1:2] * y_o - d[..., 2:3] * z_o, x_o, y_o, z_o, d
 
     def look_angle(self, col: ArrayLike) -> np.ndarray:
         """Cross-track look angle ``psi = (col - (cols - 1) / 2) * ifov`` (radians)."""
@@ -291,13 +296,8 @@ class LineScanner:
         """``M (P - S)``, shape (m, 3), for times ``t`` (m,) and ECEF points ``P`` (m, 3): the points in
         the orbital frame, then the attitude's three rotations transposed one after the other
         (``M = R^T = A^T [x_o y_o z_o]^T``, no 3 x 3 matrix per point)."""
-        t = np.asarray(t, dtype=np.float64)
-        r, v = self.orbit.position_velocity_ecef(t)
-        z_o = -unit(r)
-        y_o = unit(_cross(z_o, v))
-        x_o = _cross(y_o, z_o)
-        d = self.deviation_values(t)
-        w = P - (r + d[:, 0:1] * x_o + d[:, 1:2] * y_o - d[:, 2:3] * z_o)
+        S, x_o, y_o, z_o, d = self._orbital_frame(t)
+        w = P - S
         u0, u1, u2 = (np.einsum("ni,ni->n", axis, w) for axis in (x_o, y_o, z_o))
         cr, sr, cp, sp = np.cos(d[:, 3]), np.sin(d[:, 3]), np.cos(d[:, 4]), np.sin(d[:, 4])
         cy, sy = np.cos(d[:, 5]), np.sin(d[:, 5])
