@@ -30,7 +30,7 @@ column measures.)
 
 Usage::
 
-    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1,passes1,sigma0.25,rho0.6,sigma0.25rho0.6]
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1,passes1,sigma0.25,rho0.6,sigma0.25rho0.6,dep0]
 """
 
 from __future__ import annotations
@@ -262,6 +262,8 @@ def main() -> None:
             modes[mode] = RegisterOptions(matching=DenseOptions(densify_extend=int(mode[3:])))
         elif re.fullmatch(r"gap\d+", mode):  # "gapN": ... and across gaps of the lattice up to N px
             modes[mode] = RegisterOptions(matching=DenseOptions(densify_gap=int(mode[3:])))
+        elif re.fullmatch(r"dep[0-9.]+", mode):  # "depK": matches K sigma off their line flagged (0: never)
+            modes[mode] = RegisterOptions(lines=LineOptions(max_departure=float(mode[3:])))
         elif m := re.fullmatch(r"(?:sigma([0-9.]+))?(?:rho([0-9.]+))?", mode):  # "sigmaXrhoY": accepted up to sigma
             # X px, from correlation Y (lattice and every pixel); either may be left out
             alsc = DenseOptions().alsc

@@ -72,10 +72,14 @@ def test_low_contrast_water_is_matched(shared_data, tmp_path, client):
     f = dense_figures(ds, files.pair)
     print(f)
     # measured: coverage 0.787 (0.734 when matches needed a correlation of 0.7), RMSE 0.070 px
-    # (0.067), calibration 1.06 / 1.16
+    # (0.067), calibration 1.06 / 1.16; since matches off their line are flagged: 0.786, 0.069 px,
+    # 1.04 / 1.14
     assert f["coverage"] >= 0.76
     assert f["rmse"] <= 0.09
     assert 0.8 <= f["calib_x"] <= 1.25 and 0.8 <= f["calib_y"] <= 1.25
+    # a run of four matches one line off (1.1 px, sigma 0.08, row 49) was kept until the line
+    # step tested every match against its line (geocoder.quality.line_fits.departures)
+    assert f["unflagged_over_1px"] == 0
 
 
 def test_dense_does_not_depend_on_tiling(shared_data, tmp_path, client):
@@ -197,7 +201,13 @@ def test_where_the_polynomial_explains_the_field_the_line_fits_take_the_noise_of
                    options=RegisterOptions(lines=LineOptions(fit_order=-1)))
     f, f_off = dense_figures(ds, files.pair), dense_figures(off, files.pair)
     print(f, f_off)
-    assert (ds.status.values == off.status.values).all()  # only values and sigmas change
+    # only values and sigmas change, but for the matches flagged as off their line: tested against
+    # the line's fit in one run and against the line's shift in the other (measured: 14 matches of
+    # 0.32-0.41 px error flagged with the fits, 19 others without; 33 pixels of 262,144)
+    differ = ds.status.values != off.status.values
+    assert differ.mean() < 1e-3
+    assert set(np.unique(ds.status.values[differ])) | set(np.unique(off.status.values[differ])) <= {
+        Status.MATCHED, Status.ESTIMATED}
     assert f["rmse"] <= 0.5 * f_off["rmse"]
     assert 0.8 <= f["calib_x"] <= 1.25 and 0.8 <= f["calib_y"] <= 1.25
     assert f["unflagged_over_1px"] == 0

@@ -480,3 +480,37 @@ def test_rows_next_to_the_first_and_last_rows_with_data_take_theirs():
     np.testing.assert_allclose(c.sx[[4, 3, 2]], [0.1, 0.2, 0.3], atol=1e-9)  # the step 0.1 per row, spread 0
     assert np.isnan(c.cx[[0, 1, 18, 19]]).all() and not c.own[2:5].any()
     assert (c.first[2:5] == 20).all() and (c.last[15:18] == 79).all()
+
+
+@pytest.mark.parametrize("max_departure", [5.0, 0.0])
+def test_a_run_of_matches_off_its_line_is_flagged_and_estimated(client, tmp_path, max_departure):
+    # issue 14's Landsat crop: four neighbouring matches one line off (1.1 px, sigma 0.08) that
+    # agree with each other, so the post-filter's running median keeps them. Here such a run
+    # on a line with its own fit (600 matches) and on one with too few matches for a fit (90,
+    # its shift only); every other match follows its line (a shift per line plus a quadratic)
+    from geocoder.status import Status
+
+    sigma = 0.05
+    truth, noisy = _fit_field(40, 600, lambda u, r: np.sin(r / 3.0) + 0.3 * u - 0.2 * u * u, sigma)
+    status = np.full(truth.shape, Status.MATCHED, np.uint8)
+    status[30, 90:] = Status.NO_TEXTURE
+    runs = [(10, slice(300, 304)), (30, slice(40, 44))]
+    for r, c in runs:
+        noisy[r, c] += 1.1
+    sig = np.full(truth.shape, sigma, np.float32)
+    options = LineOptions(max_departure=max_departure)
+    out, fits = _line_field(tmp_path, noisy, -noisy, status, sig, sig, (20, 300), options, rows=True,
+                            fits_from_rows=True)
+    assert fits.ok[10] and not fits.ok[30]
+    err = np.abs(out["dx"] - truth)
+    flagged = (status == Status.MATCHED) & (out["status"] != Status.MATCHED)
+    for r, c in runs:
+        if max_departure:
+            assert (out["status"][r, c] == Status.ESTIMATED).all()
+            assert err[r, c].max() < 0.2  # from the line's matches around the run
+        else:
+            # the line's fit pulls them only part of the way (measured 0.78-0.83 px off on the fitted line)
+            assert (out["status"][r, c] == Status.MATCHED).all() and err[r, c].min() > 0.5
+    # nothing else is flagged
+    assert flagged.sum() == (8 if max_departure else 0)
+    np.testing.assert_allclose(-out["dy"], out["dx"], atol=1e-5)

@@ -18,8 +18,11 @@ import numpy as np
 from ..kernels.polynomial import PolyMap
 from ..quality.line_fits import (
     FIT_SUMS,
+    FIT_TABLE,
     NTERM_SUMS,
     LineFit,
+    departure_table,
+    departures,
     fit_sums,
     fit_table,
     line_coordinate,
@@ -129,7 +132,9 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
                fits: LineFit | None, options: LineOptions, *, correlation: int) -> dict[str, da.Array]:
     """The stored dense field with the per-line steps applied, one task per tile (lazy).
 
-    In order, as :mod:`geocoder.quality.lines` defines them: every unmatched pixel of a
+    In order, as :mod:`geocoder.quality.lines` defines them: every match that departs from its
+    line beyond its noise flagged ``BLUNDER`` (``options.max_departure``,
+    :func:`~geocoder.quality.line_fits.departures`), every unmatched pixel of a
     corrected row estimated (across a hole of at most ``options.max_hole`` px from the
     residuals at its ends, else along the whole row from the smooth part along the lines plus
     the row's shift, :func:`_estimates`; status ``ESTIMATED`` with its sigma), every match
@@ -166,13 +171,17 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
     """
     shrink = fits is not None and bool(fits.ok.any())
     width = sum(chunks[1])
+    depart = options.max_departure > 0
     table = np.column_stack([rows.first, rows.last, rows.cx, rows.cy, rows.sx, rows.sy,
-                             *([fit_table(fits)] if shrink else [])]).astype(np.float64)
+                             *([fit_table(fits)] if shrink else []),
+                             *([departure_table(fits, np.column_stack([rows.cx, rows.cy]), rows.own,
+                                                np.column_stack([rows.sx, rows.sy]) ** 2)] if depart else [])
+                             ]).astype(np.float64)
     tab = da.from_array(table.T[:, :, None], chunks=((table.shape[1],), chunks[0], (1,)))
     cols = da.arange(width, chunks=chunks[1]).reshape(1, 1, width)
     token = dask.base.tokenize(store, mapping.to_dict(), table, fits is not None, options, correlation, chunks, rows.smooth)
     stack = da.map_blocks(_line_block, tab, cols, chunks=((6,), *chunks), dtype=np.float32, name=f"line-field-{token}",
-                          store=store, shape=(sum(chunks[0]), width), mapping=mapping, options=options, shrink=shrink,
+                          store=store, shape=(sum(chunks[0]), width), mapping=mapping, options=options, shrink=shrink, depart=depart,
                           fitted=fits is not None, correlation=correlation, smooth_part=rows.smooth)
     out = {name: stack[k] for k, name in enumerate(("dx", "dy", "status", "sigma_x", "sigma_y", "correlation"))}
     out["status"] = out["status"].astype(np.uint8)
@@ -180,7 +189,7 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
 
 
 def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: str, shape: tuple[int, int],
-                mapping: PolyMap, options: LineOptions, shrink: bool, fitted: bool, correlation: int,
+                mapping: PolyMap, options: LineOptions, shrink: bool, depart: bool, fitted: bool, correlation: int,
                 smooth_part: np.ndarray | None) -> np.ndarray:
     width = shape[1]
     (r0, r1), (c0, c1) = block_info[None]["array-location"][1:]
@@ -190,17 +199,23 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     f = open_array(store, "field")[:, r0:r1, a:b]
     dx, dy, px, py, status, _ = field_window(f, mapping, (r0, r1), (a, b))
     sx, sy, rho = f[3], f[4], f[5]
-    holes = _hole_block(dx, dy, px, py, status, sx, sy, max_hole=options.max_hole, edge=options.edge)
-    t = table[:, :, 0].T  # (rows of the block, ROW_TABLE + FIT_TABLE)
+    t = table[:, :, 0].T  # (rows of the block, ROW_TABLE [+ FIT_TABLE] [+ the departures' table])
     rows = t[:, : len(ROW_TABLE)]
+    part = (np.zeros((2, r1 - r0, b - a)) if smooth_part is None
+            else smooth_values(smooth_part, np.arange(a, b)[None, :], np.arange(r0, r1)[:, None], shape))
+    if depart:
+        off = departures(dx, dy, px, py, part, status == Status.MATCHED, sx, sy, line_coordinate(np.arange(a, b), width),
+                         t[:, -len(FIT_TABLE):], k=options.max_departure, floor=options.departure_floor)
+        status = np.where(off, np.uint8(Status.BLUNDER), status)
+        dx, dy = np.where(off, px, dx), np.where(off, py, dy)
+    holes = _hole_block(dx, dy, px, py, status, sx, sy, max_hole=options.max_hole, edge=options.edge)
     # the holes from the whole read; the rest only on the columns of the core and of its
     # smoothing, whose estimates and shrinkage are exact
     sa, sb = max(c0 - smooth, 0) - a, min(c1 + smooth, width) - a
     w = (slice(None), slice(sa, sb))
     dx, dy, px, py, status, sx, sy, rho = (v[w] for v in (dx, dy, px, py, status, sx, sy, rho))
     cols = np.arange(a + sa, a + sb)
-    part = (np.zeros((2, r1 - r0, cols.size)) if smooth_part is None
-            else smooth_values(smooth_part, cols[None, :], np.arange(r0, r1)[:, None], shape))
+    part = part[:, :, sa:sb]
     # a filled pixel is set on its line's fit below; in a row without one it has no sigma and is
     # estimated like an unmatched pixel
     unfitted = None
@@ -210,7 +225,7 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     dx, dy, sx, sy, status = _estimates(dx, dy, px, py, status, sx, sy, holes[:, :, sa:sb], rows, part, unfitted)
     if shrink:
         u = line_coordinate(cols, width)
-        dx, dy, sx, sy = shrink_block(dx, dy, px, py, status == Status.MATCHED, sx, sy, u, t[:, len(ROW_TABLE):],
+        dx, dy, sx, sy = shrink_block(dx, dy, px, py, status == Status.MATCHED, sx, sy, u, t[:, len(ROW_TABLE) : len(ROW_TABLE) + len(FIT_TABLE)],
                                       filled=status == Status.FILLED)
     if smooth:
         stack = np.stack([dx, dy, px, py, status.astype(np.float32), sx, sy]).astype(np.float32)
