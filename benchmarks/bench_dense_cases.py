@@ -19,18 +19,18 @@ simulator's fields are a shift per line plus a smooth field, and pooling the lin
 and departures across the lines, which those cases reward, left sigma optimistic (1.6 / 2.2)
 on a real field with finer structure.
 
-Then seed 003 sec. 10's check of hole filling, on the default's output: in scan lines that
-are at least 90 % matched, a stretch of L matched pixels is removed (one per line, at a
-random place with matches on both sides), the post-filter fills what it can (holes up to its
-``max_gap``) and the per-line estimate takes the rest; the table gives, per hole length, the
-RMS difference of the filled / estimated values from the removed matches and from the truth.
-(The "filled" rows interpolate the output's matches, already shrunk toward their lines' fits;
-the pipeline then sets a filled pixel on its line's fit, which the first table's "filled"
-column measures.)
+Then seed 003 sec. 10's check of hole filling (:func:`geocoder.testing.hole_check`), on each
+case registered with the default options but without the line step (the field the line step
+receives): in scan lines that are at least 90 % matched, a stretch of L matched pixels is
+removed (one per line, at a random place with matches on both sides), the post-filter fills
+what it can (holes up to its ``max_gap``) and the line step (the pipeline's own, on Dask) takes
+the rest; the table gives, per hole length and status given, the RMS difference of the values
+from the removed matches and from the truth, and the calibration of their sigma.
+``--no-holes`` skips it.
 
 Usage::
 
-    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1,passes1,sigma0.25,rho0.6,sigma0.25rho0.6,dep0]
+    python benchmarks/bench_dense_cases.py [--cases s2-1024,aerial-512,...] [--workers 2] [--no-holes] [--modes full,default,no-line-fit,col32,row2,tol0.05,it1,mi8,tries1,passes1,sigma0.25,rho0.6,sigma0.25rho0.6,dep0]
 """
 
 from __future__ import annotations
@@ -78,7 +78,6 @@ CASES = {c.name: c for c in (
          relief=(0.5, 150.0)),
 )}
 
-HOLES = (4, 8, 16, 24, 32, 64, 128)
 
 
 def make_case(case: Case, work: Path):
@@ -163,76 +162,13 @@ def figures(ds, pair) -> dict:
     return out
 
 
-def hole_check(ds, pair, rng: np.random.Generator) -> list[tuple]:
-    """Seed 003 sec. 10: remove stretches of matches, fill them again, compare (per hole length)."""
-    from geocoder import Status
-    from geocoder.kernels.polynomial import PolyMap
-    from geocoder.quality.lines import LineOptions, combine_sums, hole_estimates, line_corrections, line_sums
-    from geocoder.quality.postfilter import postfilter
-
-    st0 = ds.status.values
-    dx0, dy0 = ds.dx.values.astype(np.float64), ds.dy.values.astype(np.float64)
-    sx0, sy0 = ds.sigma_x.values, ds.sigma_y.values
-    mapping = PolyMap.from_dict(json.loads(ds.attrs["mapping"]))
-    h, w = st0.shape
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    px, py = mapping(xs, ys)
-    px, py = px - xs, py - ys
-    matched = st0 == Status.MATCHED
-    inside = st0 != Status.OUTSIDE
-    good_rows = np.flatnonzero(matched.sum(axis=1) >= 0.9 * np.maximum(inside.sum(axis=1), 1))
-    rows_out = []
-    for length in HOLES:
-        st, dx, dy = st0.copy(), dx0.copy(), dy0.copy()
-        removed = np.zeros((h, w), dtype=bool)
-        for r in good_rows:
-            # a stretch of `length` matches with 8 matches on either side
-            run = np.convolve(matched[r].astype(np.int32), np.ones(length + 16, np.int32), mode="valid") == length + 16
-            starts = np.flatnonzero(run)
-            if starts.size == 0:
-                continue
-            c = int(rng.choice(starts)) + 8
-            removed[r, c : c + length] = True
-        st[removed] = Status.NO_TEXTURE
-        dx[removed] = np.nan
-        dy[removed] = np.nan
-        fdx, fdy, fst = postfilter(np.where(st == Status.MATCHED, dx, np.nan), np.where(st == Status.MATCHED, dy, np.nan),
-                                   np.where(st == Status.MATCHED, Status.MATCHED, np.where(inside, Status.NO_TEXTURE, Status.OUTSIDE)).astype(np.uint8))
-        usable = (fst == Status.MATCHED) | (fst == Status.FILLED)
-        corr = line_corrections(combine_sums(line_sums(fdx, fdy, px, py, usable, sx0, sy0)[..., None]))
-        cols = np.arange(w)[None, :]
-        reach = (cols >= corr.first[:, None]) & (cols <= corr.last[:, None]) & np.isfinite(corr.cx)[:, None]
-        opts = LineOptions()
-        target = inside & ~usable
-        hx, hy, nx, ny, by_hole = hole_estimates(fdx - px, fdy - py, sx0**2, sy0**2, usable, target,
-                                                 max_hole=opts.max_hole, edge=opts.edge)
-        est = removed & ~usable & (by_hole | reach)
-        vals = []
-        for h_, n_, c_, s_, f_ in ((hx, nx, corr.cx, corr.sx, fdx), (hy, ny, corr.cy, corr.sy, fdy)):
-            line = np.nan_to_num(c_)[:, None]
-            spread = np.nan_to_num(s_, nan=np.inf)[:, None] ** 2
-            keep = np.where(np.isfinite(spread), spread / (spread + n_), 1.0)
-            vals.append(np.where(by_hole, px * 0 + line + keep * (h_ - line), np.where(est, line, np.nan)))
-        edx = np.where(est, px + vals[0], fdx)
-        edy = np.where(est, py + vals[1], fdy)
-        filled = removed & (fst == Status.FILLED)
-        for name, m, vx, vy in (("filled", filled, fdx, fdy), ("estimated", est, edx, edy)):
-            if not m.any():
-                rows_out.append((length, name, 0, np.nan, np.nan, np.nan))
-                continue
-            d_match = np.hypot(vx[m] - dx0[m], vy[m] - dy0[m])
-            d_truth = np.hypot(vx[m] - pair.dx[m], vy[m] - pair.dy[m])
-            rows_out.append((length, name, int(m.sum()), float(np.sqrt(np.mean(d_match**2))),
-                             float(np.sqrt(np.mean(d_truth**2))), float(np.mean(d_truth > 1.0))))
-    return rows_out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--modes", default="full,default")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--tile", type=int, default=512)
+    ap.add_argument("--no-holes", action="store_true", help="skip the hole check")
     args = ap.parse_args()
     from distributed import Client
 
@@ -241,6 +177,7 @@ def main() -> None:
     from geocoder.pipeline.register import RegisterOptions
     from geocoder.quality.lines import LineOptions
     from geocoder.runtime import local_cluster
+    from geocoder.testing import hole_check
 
     modes = {"full": RegisterOptions(matching=DenseOptions(col_step=1, halo=4)), "default": None,
              "no-line-fit": RegisterOptions(lines=LineOptions(fit_order=-1))}
@@ -288,8 +225,12 @@ def main() -> None:
                 f = figures(ds, pair)
                 table.append((name, mode, wall, f))
                 print(f"{name} {mode}: {wall:.1f} s, {json.dumps(f)}", file=sys.stderr, flush=True)
-                if mode == "default":
-                    holes += [(name, *r) for r in hole_check(ds, pair, np.random.default_rng(case.seed))]
+                shutil.rmtree(out, ignore_errors=True)
+            if not args.no_holes:  # the default's field before the line step, for the hole check
+                out = work / f"{name}-before-lines.zarr"
+                ds = register(base, dist, out=out, tile=args.tile, client=client, show_progress=False,
+                              options=RegisterOptions(lines=LineOptions(enabled=False)))
+                holes += [(name, r) for r in hole_check(ds, pair.dx, pair.dy, str(work / f"{name}-holes"), seed=case.seed)]
                 shutil.rmtree(out, ignore_errors=True)
     print("\n| case | mode | wall s | coverage of textured overlap | RMSE matched+filled | calibration x / y "
           "| matched: share, RMSE, > 1 px | filled | calibration filled x / y | estimated | calibration estimated x / y | rest "
@@ -303,13 +244,14 @@ def main() -> None:
               f"{f['calibration'][0]:.2f} / {f['calibration'][1]:.2f} | {cell('matched')} | {cell('filled')} | "
               f"{f['calibration_filled'][0]:.2f} / {f['calibration_filled'][1]:.2f} | "
               f"{cell('estimated')} | {f['calibration_estimated'][0]:.2f} / {f['calibration_estimated'][1]:.2f} | {cell('rest')} | {f['all'][1]:.3f}, {f['all'][2]:.2%} | {f['rmse_polynomial']:.3f} |")
-    print("\nHole filling (seed 003 sec. 10), default mode: stretches of L matches removed from lines >= 90 % matched,"
-          " filled again by the post-filter (L <= its max_gap) or estimated (ends interpolated up to 128 px, else the line's estimate: the smooth part along the lines plus the line's shift)")
-    print("| case | L px | by | pixels | RMS vs removed matches px | RMSE vs truth px | > 1 px vs truth |")
-    print("|---|---:|---|---:|---:|---:|---:|")
-    for name, length, by, n, dm, dt, over in holes:
-        if n:
-            print(f"| {name} | {length} | {by} | {n} | {dm:.3f} | {dt:.3f} | {over:.2%} |")
+    print("\nHole filling (seed 003 sec. 10, geocoder.testing.hole_check): stretches of L matches removed from lines >= 90 %"
+          " matched in the default's field before the line step, then the post-filter (holes <= its max_gap) and the line step")
+    print("| case | L px | by | pixels | RMS vs removed matches px | RMSE vs truth px | > 1 px vs truth | calibration x / y |")
+    print("|---|---:|---|---:|---:|---:|---:|---|")
+    for name, r in holes:
+        if r["pixels"]:
+            print(f"| {name} | {r['length']} | {r['by']} | {r['pixels']} | {r['rms_vs_match']:.3f} | {r['rmse']:.3f} | "
+                  f"{r['over_1px']:.2%} | {r['calibration'][0]:.2f} / {r['calibration'][1]:.2f} |")
 
 
 if __name__ == "__main__":

@@ -305,3 +305,120 @@ def template_mean(a, size: tuple[int, int] = (7, 51)):
     num = ndi.uniform_filter(np.where(valid, a, 0.0), size, mode="nearest")
     den = ndi.uniform_filter(valid.astype(np.float64), size, mode="nearest")
     return np.where(valid, num / np.maximum(den, 1e-9), np.nan)
+
+
+#: Hole lengths (px) of :func:`hole_check`: the post-filter fills up to its ``max_gap`` (24), the
+#: line estimates take the longer ones.
+HOLE_LENGTHS = (4, 8, 16, 24, 32, 64, 128)
+
+
+def hole_check(ds, true_dx, true_dy, state: str, *, lengths=HOLE_LENGTHS, seed: int = 0, margin: int = 8,
+               options=None, postfilter_options=None) -> list[dict]:
+    """Seed 003 sec. 10's check of hole filling on a registered field.
+
+    In every scan line at least 90 % matched, one stretch of ``length`` matches (with ``margin``
+    matches on either side, at a random place) is removed; the field then goes through the
+    post-filter (which fills holes up to its ``max_gap``) and the line step of
+    :func:`geocoder.register` (:func:`geocoder.pipeline.lines.row_corrections` and
+    :func:`~geocoder.pipeline.lines.line_field`, on a Dask client if one is current), and the
+    values it gives the removed pixels are compared with the removed matches and the truth.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A :func:`geocoder.register` output with dense matching and without the line step
+        (``RegisterOptions(lines=LineOptions(enabled=False))``): the post-filtered field the line
+        step starts from, whose matches are the raw ones and whose sigmas are theirs.
+    true_dx, true_dy : numpy.ndarray
+        The true field on the base grid.
+    state : str
+        A new Zarr store (local path) for the field the line step reads.
+    lengths : sequence of int
+    seed : int
+        Seed of the stretches' places.
+    margin : int
+    options, postfilter_options : LineOptions, PostFilterOptions, optional
+        Default: those of :class:`geocoder.RegisterOptions`.
+
+    Returns
+    -------
+    list of dict
+        Per length and way filled (``"filled"`` or ``"estimated"``, the status the line step
+        gave a removed pixel): ``length``, ``by``, ``pixels``, ``rms_vs_match`` (px, against the
+        removed matches), ``rmse`` (against the truth), ``over_1px`` (share off the truth by
+        more than 1 px), ``calibration`` (RMSE / RMS(sigma) against the truth, x and y).
+    """
+    import json
+
+    import dask
+    import dask.array as da
+    import numpy as np
+    import zarr
+
+    from geocoder.kernels.polynomial import PolyMap
+    from geocoder.pipeline.lines import line_field, row_corrections
+    from geocoder.pipeline.register import RegisterOptions
+    from geocoder.pipeline.resample import poly_grid
+    from geocoder.quality.postfilter import postfilter
+    from geocoder.status import Status
+
+    defaults = RegisterOptions()
+    options = options or defaults.lines
+    postfilter_options = postfilter_options or defaults.postfilter
+    st0 = np.asarray(ds.status.values)
+    if (st0 == Status.ESTIMATED).any():
+        raise ValueError("hole_check needs a field registered without the line step (LineOptions(enabled=False)); "
+                         "this one has estimated pixels")
+    dx0, dy0 = (np.asarray(ds[k].values, np.float64) for k in ("dx", "dy"))
+    sx0, sy0, rho0 = (np.asarray(ds[k].values, np.float32) for k in ("sigma_x", "sigma_y", "correlation"))
+    mapping = PolyMap.from_dict(json.loads(ds.attrs["mapping"]))
+    h, w = st0.shape
+    px, py = (poly_grid(mapping, (0, h), (0, w), k) for k in (0, 1))
+    matched, inside = st0 == Status.MATCHED, st0 != Status.OUTSIDE
+    good_rows = np.flatnonzero(matched.sum(axis=1) >= 0.9 * np.maximum(inside.sum(axis=1), 1))
+    rng = np.random.default_rng(seed)
+    chunk = ds.dx.data.chunks if hasattr(ds.dx.data, "chunks") else ((h,), (w,))
+    tile = (chunk[0][0], chunk[1][0])
+    out = []
+    for length in lengths:
+        removed = np.zeros((h, w), bool)
+        for r in good_rows:
+            fits = np.convolve(matched[r].astype(np.int32), np.ones(length + 2 * margin, np.int32),
+                               mode="valid") == length + 2 * margin
+            starts = np.flatnonzero(fits)
+            if starts.size:
+                c = int(rng.choice(starts)) + margin
+                removed[r, c : c + length] = True
+        keep = matched & ~removed
+        status = np.where(keep, Status.MATCHED, np.where(inside, Status.NO_TEXTURE, Status.OUTSIDE)).astype(np.uint8)
+        fdx, fdy, fst = postfilter(np.where(keep, dx0, np.nan), np.where(keep, dy0, np.nan), status,
+                                   options=postfilter_options)
+        good = (fst == Status.MATCHED) | (fst == Status.FILLED)
+        sig = [np.where(fst == Status.MATCHED, s, np.nan).astype(np.float32) for s in (sx0, sy0)]
+        stack = np.stack([fdx, fdy, fst, *sig, rho0]).astype(np.float32)
+        store = f"{state}-{length}"
+        zarr.open_group(store, mode="w", zarr_format=3).create_array("field", data=stack, chunks=(6, *tile))
+        field = {"dx": da.from_array(np.where(good, fdx, px).astype(np.float32), chunks=tile),
+                 "dy": da.from_array(np.where(good, fdy, py).astype(np.float32), chunks=tile),
+                 "status": da.from_array(fst, chunks=tile),
+                 "sigma_x": da.from_array(sig[0], chunks=tile), "sigma_y": da.from_array(sig[1], chunks=tile)}
+        poly = tuple(da.from_array(p.astype(np.float32), chunks=tile) for p in (px, py))
+        rows, line_fit = row_corrections(field, poly, options, correlation=defaults.matching.alsc.radius * 2 + 1)
+        chunks = field["dx"].chunks
+        (res,) = dask.compute(line_field(store, chunks, mapping, rows, line_fit, options,
+                                         correlation=defaults.matching.alsc.radius * 2 + 1))
+        for by, code in (("filled", Status.FILLED), ("estimated", Status.ESTIMATED)):
+            m = removed & (res["status"] == code) & np.isfinite(true_dx) & np.isfinite(true_dy)
+            if not m.any():
+                out.append({"length": length, "by": by, "pixels": 0, "rms_vs_match": np.nan, "rmse": np.nan,
+                            "over_1px": np.nan, "calibration": (np.nan, np.nan)})
+                continue
+            ex, ey = res["dx"][m] - true_dx[m], res["dy"][m] - true_dy[m]
+            d_match = np.hypot(res["dx"][m] - dx0[m], res["dy"][m] - dy0[m])
+            err = np.hypot(ex, ey)
+            cal = tuple(float(np.sqrt(np.mean(e**2)) / np.sqrt(np.mean(res[s][m].astype(np.float64) ** 2)))
+                        for e, s in ((ex, "sigma_x"), (ey, "sigma_y")))
+            out.append({"length": length, "by": by, "pixels": int(m.sum()),
+                        "rms_vs_match": float(np.sqrt(np.mean(d_match**2))), "rmse": float(np.sqrt(np.mean(err**2))),
+                        "over_1px": float(np.mean(err > 1.0)), "calibration": cal})
+    return out
