@@ -307,7 +307,7 @@ def _write_stores(scenes: list[xr.DataArray], paths: list[str], outs: list[str],
     reduce = reduce or [None] * len(scenes)
     # one delayed per scene: its write and its reductions, computed in one graph, so they share the reads
     delayed = [dask.delayed(_written_and_reduced, pure=False)(
-        ds.to_zarr(path, mode="w", zarr_format=3, consolidated=False, compute=False), None if f is None else f(ds[IMAGE_VAR]))
+        ds.to_zarr(path, mode="w", zarr_format=3, consolidated=False, compute=False, encoding=storage.encoding(ds)), None if f is None else f(ds[IMAGE_VAR]))
         for ds, path, f in zip(datasets, paths, reduce)]
     if client is not None:
         futures = client.compute(delayed)

@@ -46,7 +46,7 @@ import numpy as np
 import xarray as xr
 from affine import Affine
 
-from .. import progress
+from .. import progress, storage
 from .._version import __version__
 from ..adjust.models import RPC
 from ..cog import to_cog
@@ -506,7 +506,8 @@ def mosaic(
         ds.attrs.update(store_attrs(summary, block, models, gains))
         store = job.file("output.zarr")
         if not job.done("output-created"):
-            ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
+            ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False,
+                       encoding=storage.encoding(ds))
             job.save("output-created")
         xr.Dataset({name: ("point", points[:, k]) for k, name in enumerate(POINT_COLUMNS)},
                    attrs={"long_name": "adjusted ground points (geocoder.mosaic.block.point_table)",

@@ -276,7 +276,7 @@ def write_store(ds: xr.Dataset, out: str, *, client, overwrite: bool, attrs: dic
     """
     tmp = storage.temporary_sibling(out)
     try:
-        ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
+        ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=storage.encoding(ds))
         written = xr.open_zarr(tmp, consolidated=False)
         counts = da.bincount(written.status.data.ravel(), minlength=len(Status)).compute()
         write_overviews(tmp, client=client)

@@ -510,7 +510,8 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
         else:
             store = job.file("output.zarr")
             if not job.done("output-created"):
-                ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False)
+                ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False,
+                          encoding=storage.encoding(ds))
                 job.save("output-created")
             counts = write_tiles(ds, store, grid, job)
     return ds, counts, tp

@@ -23,6 +23,7 @@ import numpy as np
 import xarray as xr
 from affine import Affine
 
+from .. import storage
 from ..conventions import pixel_grid
 from ..errors import InputError
 from ..geometry import pixel_to_world, world_to_pixel
@@ -324,7 +325,8 @@ def _simulate(kind, ortho, out, work, dem, seed, band, sensor, rows, tilt_deg, t
             # ortho's CRS of ground_x/ground_y is in the "crs" attribute
             ds["image"].attrs["long_name"] = "simulated scanner image"
             ds = pixel_grid(ds)
-            ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False).compute()
+            ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, compute=False,
+                       encoding=storage.encoding(ds)).compute()
             write_overviews(tmp, client=c)
         commit_output(tmp, out, overwrite=overwrite)
     except BaseException:
