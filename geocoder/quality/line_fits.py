@@ -284,6 +284,17 @@ def _maximum(a, b):  # pragma: no cover - compiled
     return a + b if a != a or b != b else max(a, b)
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _fit_at(t, r, a, uu):  # pragma: no cover - compiled
+    """Row ``r`` of a :data:`FIT_TABLE` table, axis ``a`` (0 x, 1 y), at line coordinate ``uu``:
+    the fit's value, the line's departure ``tau2`` and the fit's variance (at most the spread)."""
+    fit = t[r, 1 + 3 * a] + t[r, 2 + 3 * a] * uu + t[r, 3 + 3 * a] * uu * uu
+    v = 0.0
+    for k in range(4, -1, -1):  # the quartic by Horner's rule
+        v = v * uu + t[r, 11 + 5 * a + k]
+    return fit, t[r, 7 + a], _minimum(v, t[r, 9 + a])
+
+
 @numba.njit(nogil=True, cache=True)
 def _shrink_rows(dx, dy, px, py, matched, sx, sy, u, t, filled, out):  # pragma: no cover - compiled
     """:func:`shrink_block` pixel by pixel into ``out`` (dx, dy, sx, sy)."""
@@ -292,17 +303,11 @@ def _shrink_rows(dx, dy, px, py, matched, sx, sy, u, t, filled, out):  # pragma:
         fitted = t[r, 0] > 0
         for a in range(2):
             d_, p_, s_ = (dx, px, sx) if a == 0 else (dy, py, sy)
-            c0, c1, c2 = t[r, 1 + 3 * a], t[r, 2 + 3 * a], t[r, 3 + 3 * a]
-            tau2 = t[r, 7 + a]
-            spread = t[r, 9 + a]
-            v0, v1, v2, v3, v4 = t[r, 11 + 5 * a], t[r, 12 + 5 * a], t[r, 13 + 5 * a], t[r, 14 + 5 * a], t[r, 15 + 5 * a]
             for c in range(w):
-                uu = u[c]
                 d = float(d_[r, c])
                 p = float(p_[r, c])
                 s = float(s_[r, c])
-                fit = c0 + c1 * uu + c2 * uu * uu
-                v_fit = _minimum(v0 + v1 * uu + v2 * uu * uu + v3 * uu * uu * uu + v4 * uu * uu * uu * uu, spread)
+                fit, tau2, v_fit = _fit_at(t, r, a, u[c])
                 if filled[r, c] and fitted:
                     value = p + fit
                     sigma = math.sqrt(v_fit + tau2)
@@ -404,21 +409,14 @@ def _departures(dx, dy, px, py, part, matched, sx, sy, u, t, k, floor, out):  # 
             continue
         for a in range(2):
             d_, p_, s_ = (dx, px, sx) if a == 0 else (dy, py, sy)
-            c0, c1, c2 = t[r, 1 + 3 * a], t[r, 2 + 3 * a], t[r, 3 + 3 * a]
-            tau2 = t[r, 7 + a]
-            spread = t[r, 9 + a]
-            v0, v1, v2, v3, v4 = t[r, 11 + 5 * a], t[r, 12 + 5 * a], t[r, 13 + 5 * a], t[r, 14 + 5 * a], t[r, 15 + 5 * a]
             for c in range(w):
                 if not matched[r, c]:
                     continue
-                uu = u[c]
                 s = float(s_[r, c])
-                ref = c0 + c1 * uu + c2 * uu * uu
-                v_ref = 0.0
-                if kind > 1.5:
+                ref, tau2, v_ref = _fit_at(t, r, a, u[c])
+                if kind > 1.5:  # the row's shift (no fit, no variance) on the smooth part along the lines
                     ref += part[a, r, c]
-                else:
-                    v_ref = _minimum(v0 + v1 * uu + v2 * uu * uu + v3 * uu * uu * uu + v4 * uu * uu * uu * uu, spread)
+                    v_ref = 0.0
                 res = abs(float(d_[r, c]) - float(p_[r, c]) - ref)
                 if res > floor and res * res > k * k * (s * s + tau2 + v_ref):
                     out[r, c] = True
