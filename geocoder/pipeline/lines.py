@@ -177,10 +177,13 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
                              *([departure_table(fits, np.column_stack([rows.cx, rows.cy]), rows.own,
                                                 np.column_stack([rows.sx, rows.sy]) ** 2)] if depart else [])
                              ]).astype(np.float64)
-    tab = da.from_array(table.T[:, :, None], chunks=((table.shape[1],), chunks[0], (1,)))
-    cols = da.arange(width, chunks=chunks[1]).reshape(1, 1, width)
+    # the table as ONE input of every tile's task: with a few inputs in all, the tasks count as
+    # root tasks and the scheduler hands them out as workers free up (its queuing), instead of
+    # all at once; their results then waited for the output's writes, so a worker held as many
+    # tiles as the scene had rows of tiles (167 against 101 MiB held at 8192² and 4096²)
     token = dask.base.tokenize(store, mapping.to_dict(), table, fits is not None, options, correlation, chunks, rows.smooth)
-    stack = da.map_blocks(_line_block, tab, cols, chunks=((6,), *chunks), dtype=np.float32, name=f"line-field-{token}",
+    tab = dask.delayed(table, pure=True, name=f"line-table-{token}")
+    stack = da.map_blocks(_line_block, tab, chunks=((6,), *chunks), dtype=np.float32, name=f"line-field-{token}",
                           store=store, shape=(sum(chunks[0]), width), mapping=mapping, options=options, shrink=shrink, depart=depart,
                           fitted=fits is not None, correlation=correlation, smooth_part=rows.smooth)
     out = {name: stack[k] for k, name in enumerate(("dx", "dy", "status", "sigma_x", "sigma_y", "correlation"))}
@@ -188,7 +191,7 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
     return out
 
 
-def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: str, shape: tuple[int, int],
+def _line_block(table: np.ndarray, block_info=None, *, store: str, shape: tuple[int, int],
                 mapping: PolyMap, options: LineOptions, shrink: bool, depart: bool, fitted: bool, correlation: int,
                 smooth_part: np.ndarray | None) -> np.ndarray:
     width = shape[1]
@@ -199,7 +202,7 @@ def _line_block(table: np.ndarray, cols: np.ndarray, block_info=None, *, store: 
     f = open_array(store, "field")[:, r0:r1, a:b]
     dx, dy, px, py, status, _ = field_window(f, mapping, (r0, r1), (a, b))
     sx, sy, rho = f[3], f[4], f[5]
-    t = table[:, :, 0].T  # (rows of the block, ROW_TABLE [+ FIT_TABLE] [+ the departures' table])
+    t = table[r0:r1]  # (rows of the block, ROW_TABLE [+ FIT_TABLE] [+ the departures' table])
     rows = t[:, : len(ROW_TABLE)]
     part = (np.zeros((2, r1 - r0, b - a)) if smooth_part is None
             else smooth_values(smooth_part, np.arange(a, b)[None, :], np.arange(r0, r1)[:, None], shape))
