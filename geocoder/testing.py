@@ -364,6 +364,7 @@ def hole_check(ds, true_dx, true_dy, state: str, *, lengths=HOLE_LENGTHS, seed: 
 
     defaults = RegisterOptions()
     options = options or defaults.lines
+    correlation = 2 * defaults.matching.alsc.radius + 1  # the template's length along the line, as register's
     postfilter_options = postfilter_options or defaults.postfilter
     st0 = np.asarray(ds.status.values)
     if (st0 == Status.ESTIMATED).any():
@@ -403,10 +404,9 @@ def hole_check(ds, true_dx, true_dy, state: str, *, lengths=HOLE_LENGTHS, seed: 
                  "status": da.from_array(fst, chunks=tile),
                  "sigma_x": da.from_array(sig[0], chunks=tile), "sigma_y": da.from_array(sig[1], chunks=tile)}
         poly = tuple(da.from_array(p.astype(np.float32), chunks=tile) for p in (px, py))
-        rows, line_fit = row_corrections(field, poly, options, correlation=defaults.matching.alsc.radius * 2 + 1)
+        rows, line_fit = row_corrections(field, poly, options, correlation=correlation)
         chunks = field["dx"].chunks
-        (res,) = dask.compute(line_field(store, chunks, mapping, rows, line_fit, options,
-                                         correlation=defaults.matching.alsc.radius * 2 + 1))
+        (res,) = dask.compute(line_field(store, chunks, mapping, rows, line_fit, options, correlation=correlation))
         for by, code in (("filled", Status.FILLED), ("estimated", Status.ESTIMATED)):
             m = removed & (res["status"] == code) & np.isfinite(true_dx) & np.isfinite(true_dy)
             if not m.any():

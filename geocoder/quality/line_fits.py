@@ -339,8 +339,8 @@ def departure_table(fits: LineFit | None, shift: np.ndarray, own: np.ndarray, sh
     departure a line may have from it (the ``tau2`` columns) is the median, over the rows
     within ``rows`` of it that have one, of the lines' ``tau2`` (``shift_var``, (H, 2), for the
     rows without a fit): a median over many lines, so that the matches under test cannot
-    widen their own tolerance (four matches off by 1.1 px among a row's 89 make its spread
-    0.23 px, against its neighbours' 0.06).
+    widen their own tolerance (four matches off by 1.1 px among a row's 89 widen its spread to
+    about 0.23 px, computed from its sums, against 0.06 px on the fitted rows beside it).
     """
     h = own.shape[0]
     table = np.zeros((h, len(FIT_TABLE)))
