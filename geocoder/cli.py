@@ -67,29 +67,41 @@ def _group_options_first(args: list[str], group: click.Group) -> list[str]:
     return [*args[:at], *moved, args[at], *rest, *args[end:]]
 
 
-#: How long (s) zarr's I/O thread may take to stop when a command ends (zarr's exit handler waits 0.2 s).
+#: How long (s) zarr's I/O thread may take to stop at exit (zarr's own exit handler waits 0.2 s).
 ZARR_STOP_WAIT_S = 10.0
 
+_zarr_wait_registered = False
 
-def _stop_zarr_io(timeout: float = ZARR_STOP_WAIT_S) -> None:
-    """Stop zarr's I/O thread and release its loop, waiting up to ``timeout`` for it.
 
-    zarr's own exit handler asks its event loop to stop, waits 0.2 s for the thread and closes
-    the loop anyway: a thread still busy then (starved on a loaded machine, as right after a
-    Ctrl-C while the local cluster shuts down) makes the close raise "Cannot close a running
-    event loop", which Python prints as a traceback after the command's one-line message (seen
-    in ``tests/test_faults.py``'s Ctrl-C test on a loaded run). Done when a command ends, the
-    loop is stopped with time to spare and zarr's handler finds nothing left; a later zarr call
-    in the same process starts a new loop. Nothing to do where zarr was not imported.
+def _wait_for_zarr_at_exit(timeout: float = ZARR_STOP_WAIT_S) -> None:
+    """At exit, give zarr's I/O thread up to ``timeout`` to stop before zarr's exit handler runs.
+
+    zarr's handler asks its event loop to stop, waits 0.2 s for the thread and closes the loop
+    anyway: a thread still busy then (starved on a loaded machine, as right after a Ctrl-C while
+    the local cluster shuts down) makes the close raise "Cannot close a running event loop",
+    which Python prints as a traceback after the command's one-line message (seen in
+    ``tests/test_faults.py``'s Ctrl-C test on a loaded run). Registered when a command ends and
+    zarr is loaded, so after zarr's own handler, and exit handlers run in reverse order: this
+    one stops the loop first and waits. Both run after Python has joined the program's other
+    threads, so none of them can still be waiting on that loop (stopping it when the command
+    ends instead hung a run whose scheduler had been killed). Nothing to do without zarr.
     """
+    global _zarr_wait_registered
     sync = sys.modules.get("zarr.core.sync")
-    loop, thread = (getattr(sync, name, [None])[0] for name in ("loop", "iothread"))
-    if loop is None or thread is None or not thread.is_alive():
+    if _zarr_wait_registered or sync is None:
         return
-    loop.call_soon_threadsafe(loop.stop)
-    thread.join(timeout)
-    if not thread.is_alive():
-        sync.cleanup_resources()  # closes the stopped loop and forgets it
+
+    def stop() -> None:
+        loop, thread = (getattr(sync, name, [None])[0] for name in ("loop", "iothread"))
+        if loop is None or thread is None or not thread.is_alive():
+            return
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(timeout)
+
+    import atexit
+
+    atexit.register(stop)
+    _zarr_wait_registered = True
 
 
 class _Main(click.Group):
@@ -103,7 +115,7 @@ class _Main(click.Group):
         try:
             self._main(args, prog_name, complete_var, **extra)
         finally:
-            _stop_zarr_io()
+            _wait_for_zarr_at_exit()
 
     def _main(self, args, prog_name, complete_var, **extra):
         args = _group_options_first(list(sys.argv[1:] if args is None else args), self)
