@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from .alsc import _MIN_RELAX
 from .resample import bilinear_taps, sample
 
 
@@ -106,7 +107,11 @@ def refine_shift(
     """Least-squares matching of templates with shift and gain/offset, geometry ``jac`` fixed.
 
     Minimises ``sum (T(u) - a I(p + J u) - b)^2`` over the shift ``p`` and the radiometric
-    ``a, b`` by Gauss-Newton, all points at once (no Python loop over points).
+    ``a, b`` by Gauss-Newton, all points at once (no Python loop over points). The design's
+    gradients are central differences, so the steps overshoot on fine texture; they are
+    relaxed by the secant estimate of the rate as in :mod:`geocoder.kernels.alsc` (the path
+    changes, not the fixed point). A point has converged when its unrelaxed step is shorter
+    than ``tol``; its covariance is that of the evaluation that gave this step.
 
     Parameters
     ----------
@@ -138,21 +143,24 @@ def refine_shift(
     rhs = np.zeros((n, 4))
     res = np.full((n, p), np.nan)
     g = np.empty((n, p))
-    # A converged point no longer moves: its normals are evaluated once more at its final
-    # position and then stay the same, so later iterations skip it.
-    todo = np.ones(n, dtype=np.bool_)
-    for _ in range(iterations):
-        _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, todo)
+    omega = np.ones(n)
+    prev = np.zeros((n, 2))
+    for k in range(iterations):
+        # A converged point no longer moves and keeps the normals and residuals of the
+        # evaluation that gave its last step (less than ``tol`` from its final position).
+        active = ~converged
+        _shift_normals(img, gx, gy, t, x, y, du, dv, nmat, rhs, res, g, active)
         bad = ~np.isfinite(nmat).all(axis=(1, 2)) | ~np.isfinite(rhs).all(axis=1)
         nmat[bad] = np.eye(4)
         rhs[bad] = 0.0
         step = np.linalg.solve(nmat + 1e-9 * np.eye(4), rhs[..., None])[..., 0]
         step[bad] = np.nan
-        active = ~converged
-        x[active] += step[active, 0]
-        y[active] += step[active, 1]
+        if k > 0:
+            omega = _relaxation(omega, step[:, :2], prev)
+        x[active] += omega[active] * step[active, 0]
+        y[active] += omega[active] * step[active, 1]
+        prev[active] = step[active, :2]
         converged |= np.hypot(step[:, 0], step[:, 1]) < tol
-        todo = active  # not converged before this step: still moving, or moved one last time
         if converged.all():
             break
     vals = sample(img, x[:, None] + du, y[:, None] + dv, method="bilinear").astype(np.float64)
@@ -171,6 +179,16 @@ def refine_shift(
         rho=rho,
         ok=ok,
     )
+
+
+def _relaxation(omega: np.ndarray, step: np.ndarray, prev: np.ndarray) -> np.ndarray:
+    """Relaxation factors of the next ``(x, y)`` steps, as :func:`geocoder.kernels.alsc._relaxation`
+    computes one: the secant estimate ``q`` of the rate along the steps, ``omega / (1 - q)``
+    within ``[_MIN_RELAX, 1]``, 1 where ``q >= 1`` (or not finite)."""
+    den = (prev * prev).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = np.where(den > 0.0, (step * prev).sum(axis=1) / den, 0.0)
+        return np.where(q < 1.0, np.clip(omega / (1.0 - q), _MIN_RELAX, 1.0), 1.0)
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
