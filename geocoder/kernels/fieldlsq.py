@@ -393,19 +393,18 @@ def field_lsq(
     qx = float(np.median((px - cols)[weight])) if weight.any() and not template else 0.0
     qy = float(np.median((py - rows)[weight])) if weight.any() and not template else 0.0
     iw = np.full((h, w), np.nan)
-    gxw = np.full((h, w), np.nan)
-    gyw = np.full((h, w), np.nan)
     sol = np.full((8, h, w), np.nan)
     stats = np.full((5, h, w), np.nan)
     step = np.full((h, w), np.inf)
     r0, r1, c0, c1 = region
     if template:
-        _template_rounds(t, d, px, py, weight, region, radius, radius_y, iterations, min_fill, iw, gxw, gyw, sol, stats,
-                         step)
+        _template_rounds(t, d, px, py, weight, region, radius, radius_y, iterations, min_fill, iw, sol, stats, step)
         stats[_SIGMA_X : _SIGMA_Y + 1] *= _noise_gain(radius, radius_y)
         stats[_COV_XY] *= _noise_gain(radius, radius_y) ** 2
     else:
         cgy, cgx = np.gradient(d)  # the smooth gradients of the precision (NaN spreads to neighbours)
+        gxw = np.full((h, w), np.nan)
+        gyw = np.full((h, w), np.nan)
         cxw = np.full((h, w), np.nan)
         cyw = np.full((h, w), np.nan)
     for it in range(0 if template else iterations):
@@ -434,33 +433,32 @@ def field_lsq(
 
 
 @numba.njit(nogil=True, cache=True)
-def box_means(qx, qy, weight, rx, ry):  # pragma: no cover - compiled
-    """Means of ``qx`` and ``qy`` over the ``weight`` pixels of the template's box
-    ((2 ry + 1) x (2 rx + 1), clipped at the border) around every pixel; NaN where it holds none.
+def smoothed_positions(px, py, weight, rx, ry, work, sx, sy):  # pragma: no cover - compiled
+    """The field smoothed over the template's box: ``sx, sy`` get every pixel's column and row
+    plus the mean displacement ``(px - col, py - row)`` of the ``weight`` pixels of its box
+    ((2 ry + 1) x (2 rx + 1), clipped at the border); NaN where the box holds none.
 
-    Running sums along the rows, then down the columns; the counts are exact integers.
+    Running sums along the rows into ``work`` (3, h, w), then down the columns; the counts are
+    exact integers. Writes only into its arguments (no per-call planes).
     """
     h, w = weight.shape
-    rows = np.empty((3, h, w))
     for r in range(h):
-        sx = sy = n = 0.0
+        ax = ay = n = 0.0
         for c in range(-rx, w + rx):
             enter = c + rx
             if enter < w and weight[r, enter]:
-                sx += qx[r, enter]
-                sy += qy[r, enter]
+                ax += px[r, enter] - enter
+                ay += py[r, enter] - r
                 n += 1.0
             leave = c - rx - 1
             if leave >= 0 and weight[r, leave]:
-                sx -= qx[r, leave]
-                sy -= qy[r, leave]
+                ax -= px[r, leave] - leave
+                ay -= py[r, leave] - r
                 n -= 1.0
             if 0 <= c < w:
-                rows[0, r, c] = sx
-                rows[1, r, c] = sy
-                rows[2, r, c] = n
-    mx = np.empty((h, w))
-    my = np.empty((h, w))
+                work[0, r, c] = ax
+                work[1, r, c] = ay
+                work[2, r, c] = n
     acc = np.zeros((3, w))
     for r in range(-ry, h + ry):
         enter = r + ry
@@ -468,19 +466,18 @@ def box_means(qx, qy, weight, rx, ry):  # pragma: no cover - compiled
         for c in range(w):
             if enter < h:
                 for k in range(3):
-                    acc[k, c] += rows[k, enter, c]
+                    acc[k, c] += work[k, enter, c]
             if leave >= 0:
                 for k in range(3):
-                    acc[k, c] -= rows[k, leave, c]
+                    acc[k, c] -= work[k, leave, c]
             if 0 <= r < h:
                 n = acc[2, c]
                 if n > 0.5:
-                    mx[r, c] = acc[0, c] / n
-                    my[r, c] = acc[1, c] / n
+                    sx[r, c] = c + acc[0, c] / n
+                    sy[r, c] = r + acc[1, c] / n
                 else:
-                    mx[r, c] = np.nan
-                    my[r, c] = np.nan
-    return mx, my
+                    sx[r, c] = np.nan
+                    sy[r, c] = np.nan
 
 
 def round_windows(region, grow: int, rx: int, ry: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -493,7 +490,7 @@ def round_windows(region, grow: int, rx: int, ry: int, shape: tuple[int, int]) -
     return reg, warp
 
 
-def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill, iw, gxw, gyw, sol, stats, step):
+def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill, iw, sol, stats, step):
     """The rounds of ``gradients="template"``: smooth the field over the template's box,
     resample the image there, and move every pixel to the smoothed field plus its template's shift.
 
@@ -505,14 +502,14 @@ def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill,
     """
     h, w = t.shape
     tgy, tgx = np.gradient(t)
-    cols = np.arange(w)[None, :]
-    rows = np.arange(h)[:, None]
+    work = np.empty((3, h, w))
+    sx = np.empty((h, w))
+    sy = np.empty((h, w))
     for it in range(iterations):
         grow = 2 * (iterations - 1 - it)
         reg, warp = round_windows(region, grow, rx, ry, (h, w))
-        mx, my = box_means(px - cols, py - rows, weight, rx, ry)
-        sx, sy = cols + mx, rows + my
-        _warp(d, sx, sy, warp, iw, gxw, gyw)
+        smoothed_positions(px, py, weight, rx, ry, work, sx, sy)
+        _sample(d, sx, sy, warp, iw)
         _solve_window(t, iw, tgx, tgy, iw, iw, sx, sy, 0.0, 0.0, weight, reg, rx, ry, min_fill, it == iterations - 1,
                       True, sol, stats)
         _move(sol, stats, sx, sy, px, py, step, reg)

@@ -53,8 +53,8 @@ from .fieldlsq import (
     _accept,
     _move,
     _noise_gain,
-    box_means,
     round_windows,
+    smoothed_positions,
 )
 from .window_sums import (
     _NPLANES_SOLVE,
@@ -78,7 +78,7 @@ from .window_sums import (
     _centred_sums,
     _ldl_solve8,
     _row_planes,
-    _warp,
+    _sample,
 )
 
 __all__ = ["field_lsq_bands"]
@@ -272,21 +272,19 @@ def field_lsq_bands(
     tgy = np.ascontiguousarray(np.stack([g[0] for g in tg]))
     tgx = np.ascontiguousarray(np.stack([g[1] for g in tg]))
     iw = np.full((nb, h, w), np.nan)
-    gxw = np.full((h, w), np.nan)
-    gyw = np.full((h, w), np.nan)
     sol = np.full((8, h, w), np.nan)
     stats = np.full((5, h, w), np.nan)
     step = np.full((h, w), np.inf)
     r0, r1, c0, c1 = region
-    cols = np.arange(w)[None, :]
-    rows = np.arange(h)[:, None]
+    work = np.empty((3, h, w))
+    sx = np.empty((h, w))
+    sy = np.empty((h, w))
     for it in range(iterations):
         grow = 2 * (iterations - 1 - it)
         reg, warp = round_windows(region, grow, rx, ry, (h, w))
-        mx, my = box_means(px - cols, py - rows, weight, rx, ry)
-        sx, sy = cols + mx, rows + my
+        smoothed_positions(px, py, weight, rx, ry, work, sx, sy)
         for b in range(nb):
-            _warp(d[b], sx, sy, warp, iw[b], gxw, gyw)
+            _sample(d[b], sx, sy, warp, iw[b])
         _solve_window_bands(t, iw, tgx, tgy, sx, sy, weight, reg, rx, ry, min_fill, it == iterations - 1, sol, stats)
         _move(sol, stats, sx, sy, px, py, step, reg)
     stats[_SIGMA_X : _SIGMA_Y + 1] *= _noise_gain(rx, ry)
