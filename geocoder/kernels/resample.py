@@ -298,9 +298,19 @@ def _prepare(
 EDGE = 1e-3
 
 
-def _onto_edge(v: np.ndarray, size: int) -> np.ndarray:
-    v = np.where((v < 0.0) & (v >= -EDGE), 0.0, v)
-    return np.where((v > size - 1) & (v <= size - 1 + EDGE), float(size - 1), v)
+@numba.njit(nogil=True, cache=True)
+def _onto_edge(v, size):  # pragma: no cover - compiled
+    """A copy of ``v`` (1-D float64) with the positions within :data:`EDGE` outside ``[0, size - 1]`` moved onto it."""
+    out = np.empty_like(v)
+    last = float(size - 1)
+    for i in range(v.shape[0]):
+        a = v[i]
+        if a < 0.0 and a >= -EDGE:
+            a = 0.0
+        elif a > last and a <= last + EDGE:
+            a = last
+        out[i] = a
+    return out
 
 
 def sample(
