@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .alsc import _MIN_RELAX
+from .alsc import _relaxation
 from .resample import bilinear_taps, sample
 
 
@@ -156,7 +156,7 @@ def refine_shift(
         step = np.linalg.solve(nmat + 1e-9 * np.eye(4), rhs[..., None])[..., 0]
         step[bad] = np.nan
         if k > 0:
-            omega = _relaxation(omega, step[:, :2], prev)
+            _relax_all(omega, step, prev)
         x[active] += omega[active] * step[active, 0]
         y[active] += omega[active] * step[active, 1]
         prev[active] = step[active, :2]
@@ -181,14 +181,12 @@ def refine_shift(
     )
 
 
-def _relaxation(omega: np.ndarray, step: np.ndarray, prev: np.ndarray) -> np.ndarray:
-    """Relaxation factors of the next ``(x, y)`` steps, as :func:`geocoder.kernels.alsc._relaxation`
-    computes one: the secant estimate ``q`` of the rate along the steps, ``omega / (1 - q)``
-    within ``[_MIN_RELAX, 1]``, 1 where ``q >= 1`` (or not finite)."""
-    den = (prev * prev).sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        q = np.where(den > 0.0, (step * prev).sum(axis=1) / den, 0.0)
-        return np.where(q < 1.0, np.clip(omega / (1.0 - q), _MIN_RELAX, 1.0), 1.0)
+@numba.njit(nogil=True, cache=True)
+def _relax_all(omega, step, prev):  # pragma: no cover - compiled
+    """ALSC's relaxation factor (:func:`geocoder.kernels.alsc._relaxation`) of every point's next
+    ``(x, y)`` step, in place in ``omega``."""
+    for i in range(omega.shape[0]):
+        omega[i] = _relaxation(omega[i], step[i, 0], step[i, 1], prev[i, 0], prev[i, 1])
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
