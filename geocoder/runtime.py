@@ -28,12 +28,18 @@ log = logging.getLogger(__name__)
 #: 32 MiB (glibc's own dynamic limit) come from the heap, and up to 256 MiB of freed heap stays
 #: with the process for the next task: a worker's memory is still bounded by its tasks (not the
 #: scene), at ~0.2 GiB more; the 2048² dense job (tile 1024) ran 7.3-7.4 -> 6.5-6.8 s, peak
-#: worker memory 0.74 -> 0.90-1.02 GiB (two interleaved runs each, issue 12's notes). glibc reads both when the process starts, so they must reach it through the
+#: worker memory 0.74 -> 0.90-1.02 GiB (two interleaved runs each, issue 12's notes). The heap
+#: still grew, and was trimmed, by the few pages each request needed, so a task larger than the
+#: last one faulted its new pages in one by one again (a 2048² dense job: 120-190 thousand minor
+#: faults and 1.2-2.4 s of system time in the workers, every run); ``MALLOC_TOP_PAD_`` grows and
+#: keeps it 256 MiB at a time: 17-30 thousand faults and 0.5-0.8 s after a worker's first job,
+#: the job 7.6 -> 6.9 s (mean of nine runs alternated over three clusters each, this session's
+#: issue-12 note). glibc reads all three when the process starts, so they must reach it through the
 #: environment it starts with (the nanny's ``pre-spawn-environ``, see :data:`WORKER_CONFIG`).
 #: This is the one definition: the preload (``workers/geocoder_preload.py``) imports it, and the
 #: ``ENV`` of ``workers/Dockerfile`` must repeat it (tests/test_worker_env.py compares them).
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1",
-              "GDAL_CACHEMAX": "16", "MALLOC_MMAP_THRESHOLD_": "33554432", "MALLOC_TRIM_THRESHOLD_": "268435456"}
+              "GDAL_CACHEMAX": "16", "MALLOC_MMAP_THRESHOLD_": "33554432", "MALLOC_TRIM_THRESHOLD_": "268435456", "MALLOC_TOP_PAD_": "268435456"}
 
 #: Dask configuration of every worker (``workers/dask.yaml`` must hold it too; tests/test_worker_env.py
 #: compares them). The statistical
@@ -43,7 +49,7 @@ WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 #: (``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=True``).
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False,
                  **{f"distributed.nanny.pre-spawn-environ.{k}": WORKER_ENV[k]
-                    for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")}}
+                    for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_")}}
 
 
 def local_cluster(n_workers: int | None = None, *, memory_limit: str | None = "auto") -> LocalCluster:
