@@ -290,6 +290,22 @@ def current_client() -> Client | None:
         return None
 
 
+def shared_input(value: Any, name: str) -> Any:
+    """``value`` as the one input of many tile tasks (a ``Delayed``), held by every worker.
+
+    The scheduler places a task with inputs only on the workers that hold them: a constant
+    computed on one worker drew every task that reads it to that worker when the tasks were
+    too few to count as root tasks (the four tiles of a 2048² job's line estimates, and their
+    resampling and writing after them, ran one after another on one of two workers). On a
+    distributed client the value is therefore scattered to every worker; without one it is
+    a plain ``dask.delayed`` named ``name``.
+    """
+    client = current_client()
+    if client is None:
+        return dask.delayed(value, pure=True, name=name)
+    return dask.delayed(client.scatter(value, broadcast=True, hash=False))
+
+
 #: Single-task items :func:`compute_as_completed` keeps in flight per worker thread (a bound on the
 #: results and inputs waiting on a worker, and enough queued work to hide the round trips).
 IN_FLIGHT_PER_THREAD = 8

@@ -7,13 +7,21 @@ import time
 from pathlib import Path
 
 import dask
+import dask.array as da
 import numpy as np
 import pytest
 import yaml
 from distributed import Client
 
 from geocoder import register
-from geocoder.runtime import IN_FLIGHT_PER_THREAD, WORKER_CONFIG, WORKER_ENV, compute_as_completed, local_cluster
+from geocoder.runtime import (
+    IN_FLIGHT_PER_THREAD,
+    WORKER_CONFIG,
+    WORKER_ENV,
+    compute_as_completed,
+    local_cluster,
+    shared_input,
+)
 from geocoder.scene import write_geotiff
 from geocoder.simulate.texture import synthetic_ortho
 from geocoder.simulate.warp import make_pair
@@ -142,6 +150,20 @@ def test_the_window_follows_workers_that_join_during_a_stage():
     assert results == {f"t{i}": i * i for i in range(4 * IN_FLIGHT_PER_THREAD)}
     assert in_flight[0] <= IN_FLIGHT_PER_THREAD, "a window per thread of the one worker"
     assert max(in_flight) > IN_FLIGHT_PER_THREAD, "the joining worker's thread gets tasks too"
+
+
+def _pid_block(table: np.ndarray, seconds: float) -> np.ndarray:
+    time.sleep(seconds)
+    return np.full((1, 1), os.getpid() + 0 * int(table.sum()))
+
+
+def test_a_shared_input_does_not_draw_its_few_tasks_to_one_worker(client):
+    """The tiles of a small scene reading one constant (fewer than the scheduler queues as root
+    tasks): with the constant on one worker, three or four of the four ran there one after another."""
+    tab = shared_input(np.arange(60_000, dtype=np.float64), "table-x")
+    blocks = da.map_blocks(_pid_block, tab, 0.1, chunks=((1, 1), (1, 1)), dtype=np.int64, name="pid-block-x")
+    pids, counts = np.unique(blocks.compute(), return_counts=True)
+    assert set(pids) == set(client.run(os.getpid).values()) and list(counts) == [2, 2]
 
 
 def _wanted(key: str, dask_scheduler=None) -> bool:

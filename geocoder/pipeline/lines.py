@@ -43,6 +43,7 @@ from ..quality.lines import (
     line_sums,
     smooth_matches,
 )
+from ..runtime import shared_input
 from ..status import Status
 from ..storage import open_array
 from ..tiles import Window
@@ -180,9 +181,10 @@ def line_field(store: str, chunks: tuple[tuple[int, ...], tuple[int, ...]], mapp
     # the table as ONE input of every tile's task: with a few inputs in all, the tasks count as
     # root tasks and the scheduler hands them out as workers free up (its queuing), instead of
     # all at once; their results then waited for the output's writes, so a worker held as many
-    # tiles as the scene had rows of tiles (167 against 101 MiB held at 8192² and 4096²)
+    # tiles as the scene had rows of tiles (167 against 101 MiB held at 8192² and 4096²). On
+    # every worker, so that fewer tiles than that are not all drawn to one (shared_input).
     token = dask.base.tokenize(store, mapping.to_dict(), table, fits is not None, options, correlation, chunks, rows.smooth)
-    tab = dask.delayed(table, pure=True, name=f"line-table-{token}")
+    tab = shared_input(table, f"line-table-{token}")
     stack = da.map_blocks(_line_block, tab, chunks=((6,), *chunks), dtype=np.float32, name=f"line-field-{token}",
                           store=store, shape=(sum(chunks[0]), width), mapping=mapping, options=options, shrink=shrink, depart=depart,
                           fitted=fits is not None, correlation=correlation, smooth_part=rows.smooth)
