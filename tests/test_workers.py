@@ -16,6 +16,7 @@ from distributed import Client
 from geocoder import register
 from geocoder.runtime import (
     IN_FLIGHT_PER_THREAD,
+    THREADS_TTL_S,
     WORKER_CONFIG,
     WORKER_ENV,
     compute_as_completed,
@@ -145,6 +146,12 @@ def test_the_window_follows_workers_that_join_during_a_stage():
             if n == 0:
                 cluster.scale(2)
                 c.wait_for_workers(2, timeout=120)
+                # the scheduler counts the new worker's thread, and the count compute_as_completed
+                # keeps is older than THREADS_TTL_S (without both, one run in ten kept a window of 8)
+                deadline = time.monotonic() + 120
+                while sum(c.nthreads().values()) < 2 and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                time.sleep(THREADS_TTL_S)
 
         results, in_flight = _compute_counting(c, _squares(4 * IN_FLIGHT_PER_THREAD), on_yield=grow)
     assert results == {f"t{i}": i * i for i in range(4 * IN_FLIGHT_PER_THREAD)}
