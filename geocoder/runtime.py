@@ -32,9 +32,9 @@ log = logging.getLogger(__name__)
 #: still grew, and was trimmed, by the few pages each request needed, so a task larger than the
 #: last one faulted its new pages in one by one again (a 2048² dense job: 120-190 thousand minor
 #: faults and 1.2-2.4 s of system time in the workers, every run); ``MALLOC_TOP_PAD_`` grows and
-#: keeps it 256 MiB at a time: 17-30 thousand faults and 0.5-0.8 s after a worker's first job,
-#: the job 7.6 -> 6.9 s (mean of nine runs alternated over three clusters each, this session's
-#: issue-12 note). glibc reads all three when the process starts, so they must reach it through the
+#: keeps it 256 MiB at a time: 17-30 thousand faults and 0.5-0.8 s after a worker's first job;
+#: the job 7.6 -> 6.9 s and 7.61 -> 7.42 s (two series of runs alternated on fresh clusters),
+#: 4096² 26.5 -> 24.8 s, peak worker memory about the same (issue 12's notes). glibc reads all three when the process starts, so they must reach it through the
 #: environment it starts with (the nanny's ``pre-spawn-environ``, see :data:`WORKER_CONFIG`).
 #: This is the one definition: the preload (``workers/geocoder_preload.py``) imports it, and the
 #: ``ENV`` of ``workers/Dockerfile`` must repeat it (tests/test_worker_env.py compares them).
@@ -297,11 +297,12 @@ def shared_input(value: Any, name: str) -> Any:
     computed on one worker drew every task that reads it to that worker when the tasks were
     too few to count as root tasks (the four tiles of a 2048² job's line estimates, and their
     resampling and writing after them, ran one after another on one of two workers). On a
-    distributed client the value is therefore scattered to every worker; without one it is
-    a plain ``dask.delayed`` named ``name``.
+    distributed client the value is therefore scattered to every worker; without one (or
+    without workers yet, where a broadcast would wait for them) it is a plain ``dask.delayed``
+    named ``name``.
     """
     client = current_client()
-    if client is None:
+    if client is None or not client.scheduler_info().get("workers"):
         return dask.delayed(value, pure=True, name=name)
     return dask.delayed(client.scatter(value, broadcast=True, hash=False))
 
