@@ -88,3 +88,15 @@ def test_rotated_geotransform_is_refused_as_a_grid_and_dropped_otherwise(tmp_pat
     assert scene.attrs["georeferenced"] is False
     np.testing.assert_array_equal(scene.x.values, np.arange(64))
     np.testing.assert_array_equal(scene.values, img)
+
+
+def test_a_geotiff_scene_s_chunks_share_no_input(tmp_path):
+    """Every chunk's task holds the file's reader itself: as one shared input it lived on one
+    worker, and every chunk's read and store of an ingest was drawn there."""
+    path = tmp_path / "s.tif"
+    write_geotiff(path, np.arange(64 * 96, dtype=np.float32).reshape(64, 96))
+    scene = open_scene(path, chunks=32)
+    graph = dict(scene.data.__dask_graph__())
+    assert len(graph) == 6 and not any("original" in str(k) for k in graph)
+    assert open_scene(path, chunks=32).data.name == scene.data.name  # a deterministic key
+    np.testing.assert_array_equal(scene.values[0], np.arange(64 * 96, dtype=np.float32).reshape(64, 96))
