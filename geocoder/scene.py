@@ -56,14 +56,6 @@ def is_read_error(exc: BaseException) -> bool:
     return any(name in f"{type(exc).__name__} {exc!r}" for name in ("RasterioIOError", "RasterioError", "CPLE_"))
 
 
-def _mtime(path: str) -> float | None:
-    """The file's modification time (None for a URL), so that a rewritten file is a new dask key."""
-    try:
-        return os.path.getmtime(path)
-    except (OSError, TypeError):
-        return None
-
-
 def _chunks(chunks: int | dict | None) -> dict:
     if isinstance(chunks, dict):
         return {"band": -1, **chunks}
@@ -130,14 +122,15 @@ def open_scene(
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", NotGeoreferencedWarning)  # a raw frame, on purpose
                 da = rioxarray.open_rasterio(where, masked=True, lock=False, cache=False)
-                # every chunk's task holds the file's reader itself (inline_array): as one shared
-                # input it lived on one worker, and every chunk's read and store was drawn there
-                # (the eight of a 2048² pair's ingest ran one after another on one of two workers)
-                token = dask.base.tokenize(where, _mtime(where), chunks)
-                da = da.chunk(_chunks(chunks), inline_array=True, name_prefix="open_rasterio-", token=token)
-            source_dtype = str(da.encoding.get("rasterio_dtype", da.encoding.get("dtype", da.dtype)))
             if isinstance(da, list):
                 raise InputError(spath, "has several subdatasets; open one of them")
+            # every chunk's task holds the file's reader itself (inline_array): as one shared
+            # input it lived on one worker, and every chunk's read and store was drawn there
+            # (the eight of a 2048² pair's ingest ran one after another on one of two workers);
+            # the key changes with the file (storage.identity)
+            token = dask.base.tokenize(storage.identity(where), chunks)
+            da = da.chunk(_chunks(chunks), inline_array=True, name_prefix="open_rasterio-", token=token)
+            source_dtype = str(da.encoding.get("rasterio_dtype", da.encoding.get("dtype", da.dtype)))
     except InputError:
         raise
     except Exception as exc:  # rasterio/zarr raise many types; name the file and the cause
