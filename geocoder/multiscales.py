@@ -221,7 +221,10 @@ class _Levels:
         cy, cx = self.chunks[name][-2:]
         key = (group, cy, cx)
         if key not in self._opened:
-            self._opened[key] = xr.open_zarr(self.store, group=group, consolidated=False, chunks={"y": 2 * cy, "x": 2 * cx})
+            # every chunk's task holds the array's reader itself (inline_array): as one shared input
+            # it lived on one worker and drew the level's tasks there (5 of 7 at 2048², two workers)
+            self._opened[key] = xr.open_dataset(self.store, engine="zarr", group=group, consolidated=False,
+                                                chunks={"y": 2 * cy, "x": 2 * cx}, inline_array=True)
         return self._opened[key][name]
 
     def dataset(self, k: int, below: dict[str, xr.DataArray] | None = None,

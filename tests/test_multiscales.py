@@ -271,6 +271,21 @@ def test_one_task_per_output_chunk(store):
         assert max(level2[name].data.chunks[-1]) == CHUNK
 
 
+def test_a_level_s_tasks_share_no_input(store):
+    """Every task of a level reads its own block (the reader inline in the task, not one shared
+    input that would draw all the level's tasks to the worker holding it), with keys that do
+    not change between two openings of the same store."""
+    root = xr.open_zarr(store["path"], decode_coords="all", consolidated=False)
+    levels = _Levels(str(store["path"]), ["height", "image", "status"], root)
+    for name in ("height", "image", "status"):
+        below = levels._open(None, name).data
+        graph = dict(below.__dask_graph__())
+        assert len(graph) == below.npartitions  # one task per block, no shared 'original' key
+        again = _Levels(str(store["path"]), ["height", "image", "status"], root)._open(None, name).data
+        assert again.name == below.name
+        np.testing.assert_array_equal(below.compute(), root[name].values)
+
+
 def test_pixel_grid_store_and_rerun(truth, tmp_path, client):
     """A store without CRS: level coordinates in full-resolution pixels; a second call replaces the levels."""
     path = _write(pixel_grid(_dataset(truth)), tmp_path / "raw.zarr")
