@@ -191,10 +191,11 @@ def test_dense_lattice_field_against_truth(shared_data, tmp_path, client):
 def test_where_the_polynomial_explains_the_field_the_line_fits_take_the_noise_off(shared_data, tmp_path, client):
     """Issue 14: a smooth field (affine + quadratic, no turbulence) is what the global polynomial
     models; the matches shrunk toward their lines' fits are less noisy than the matches
-    alone, and their sigma tells how far off they are. Measured (512^2 S2, 53 % textured): 0.096 px
-    without the fits, 0.041 with them (calibration 0.88 / 1.00); before the lines' slopes were
-    shrunk toward their trend 0.062 (1.19 / 1.32). The polynomial itself: 0.0086, so the goal of
-    being no noisier than the polynomial is not reached on this case."""
+    alone, and their sigma tells how far off they are. Measured (512^2 S2, 53 % textured): 0.1005 px
+    without the fits, 0.024 with them (calibration 1.06 / 0.88); before the rows' departures were
+    shrunk toward their trend 0.041 (0.88 / 1.00), before the lines' slopes were 0.062 (1.19 /
+    1.32). The polynomial itself: 0.0086, so the goal of being no noisier than the polynomial is
+    not reached on this case (it is on issue 14's smooth 1024^2 S2 case, 0.006 px both)."""
     files = real_pair(shared_data, tmp_path, which="s2", size=512, seed=5)
     ds = register(files.base, files.distorted, tile=256, client=client)
     off = register(files.base, files.distorted, tile=256, client=client,
@@ -208,7 +209,7 @@ def test_where_the_polynomial_explains_the_field_the_line_fits_take_the_noise_of
     assert differ.mean() < 1e-3
     assert set(np.unique(ds.status.values[differ])) | set(np.unique(off.status.values[differ])) <= {
         Status.MATCHED, Status.ESTIMATED}
-    assert f["rmse"] <= 0.5 * f_off["rmse"]
+    assert f["rmse"] <= 0.3 * f_off["rmse"]  # measured 0.24
     assert 0.8 <= f["calib_x"] <= 1.25 and 0.8 <= f["calib_y"] <= 1.25
     assert f["unflagged_over_1px"] == 0
 

@@ -82,7 +82,8 @@ def _block_sums(dx, dy, px, py, status, sigma_x, sigma_y, block_info=None, *, sh
 
 
 def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.Array], options: LineOptions,
-                    *, correlation: int = 51, sums: np.ndarray | None = None) -> tuple[LineCorrection, LineFit | None]:
+                    *, correlation: int = 51, line_correlation: int = 1,
+                    sums: np.ndarray | None = None) -> tuple[LineCorrection, LineFit | None]:
     """Compute the correction of every row of a dense field (its matched and filled pixels),
     and the fit along every row that its matches are shrunk toward (None with
     ``options.fit_order = -1``), from one pass over the field.
@@ -96,6 +97,9 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     options : LineOptions
     correlation : int
         Template length along the line (px): a row's fit needs twice as many matches.
+    line_correlation : int
+        Template height (rows): how many neighbouring lines share a line's errors
+        (:func:`~geocoder.quality.line_fits.shrink_coefficients`).
     sums : ndarray, shape (n, H, tile columns), optional
         The tiles' :func:`tile_sums` side by side, if computed already (by the stored
         post-filter pass, :func:`geocoder.pipeline.dense.dense_field`); else one pass over
@@ -120,7 +124,8 @@ def row_corrections(field: dict[str, da.Array], polynomial: tuple[da.Array, da.A
     if options.fit_order < 0:
         return rows, None
     fits = line_fits(sums[len(SUMS):k].sum(axis=-1), order=options.fit_order,
-                     min_count=max(options.min_count, 2 * correlation), correlation=correlation)
+                     min_count=max(options.min_count, 2 * correlation), correlation=correlation,
+                     line_correlation=line_correlation)
     return rows, fits
 
 

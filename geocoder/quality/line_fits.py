@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .shrinkage import random_effects
+from .shrinkage import random_effects, shrink
 
 #: Quantities :func:`fit_sums` returns per row, all added over the blocks of a row band: the
 #: moments ``sum(u^k)`` of the line coordinate of the matches, ``sum(r u^k)`` of their residuals
@@ -202,7 +202,8 @@ class LineFit:
         and curvature, each shrunk toward the lines' trend (:func:`shrink_coefficients`).
     tau2_x, tau2_y : ndarray (H,)
         Variance of the residuals about the fit beyond the matches' own noise (px^2): how far
-        the line departs from the fit.
+        the line departs from the fit (each row's estimate shrunk toward the rows' trend,
+        :func:`row_departures`).
     spread_x, spread_y : ndarray (H,)
         Variance of the residuals about the fit (px^2), over the row's independent matches
         (one per ``correlation`` px, of which the fit takes one per coefficient).
@@ -422,7 +423,38 @@ def _departures(dx, dy, px, py, part, matched, sx, sy, u, t, k, floor, out):  # 
                     out[r, c] = True
 
 
-def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _trend_design(v: np.ndarray) -> np.ndarray:
+    """Regressors of a quadratic trend across the lines at line positions ``v``."""
+    return np.stack([np.ones_like(v), v, v * v], axis=1)
+
+
+def row_departures(excess: np.ndarray, sampling: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """How far each line departs from its fit beyond the matches' noise (px^2, at least 0).
+
+    ``excess`` is a row's moment estimate, the residuals' variance about the fit less the
+    matches' own; alone it scatters by its sampling variance ``sampling`` about the truth,
+    and floored at 0 it is positive by chance on a quarter to half of the rows of a field
+    that does not depart at all (issue 14: the matches there kept 4-10 % of their noise and
+    sigma was pessimistic by a third). The rows' estimates are shrunk toward a quadratic trend
+    across the lines by how much they scatter beyond their sampling variance (empirical
+    Bayes, :func:`geocoder.quality.shrinkage.shrink`), then floored at 0: rows that do depart
+    (relief, a local distortion) keep their own, the others take what the scene shows in all.
+
+    Parameters
+    ----------
+    excess, sampling : ndarray (L,)
+        Per line, the moment estimate and its sampling variance.
+    v : ndarray (L,)
+        The lines' position across the scene (:func:`line_coordinate`).
+    """
+    x = _trend_design(np.asarray(v, np.float64))
+    if len(excess) < 4 * x.shape[1]:  # too few lines to tell a trend from their spread
+        return np.maximum(excess, 0.0)
+    return np.maximum(shrink(excess, sampling, x)[0], 0.0)
+
+
+def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray, *,
+                        line_correlation: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The lines' coefficients (shift, slope, curvature) shrunk toward a smooth trend across the
     lines by how much the lines differ from it beyond the fits' own noise (empirical Bayes, as
     :func:`geocoder.quality.lines.line_corrections` does for the rows' shifts).
@@ -451,13 +483,21 @@ def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tup
         Their covariances.
     v : ndarray (L,)
         The lines' position across the scene (:func:`line_coordinate` of the row).
+    line_correlation : float
+        How many neighbouring lines share one line's errors: the trend's variance, computed as
+        if the lines were independent, is multiplied by it. Consecutive lines matched with a
+        template ``2 ry + 1`` rows high share ``2 ry + 1 - d`` of their rows at distance ``d``,
+        so their errors correlate by ``1 - d / (2 ry + 1)`` and a trend over many lines knows
+        ``2 ry + 1`` times less than the independent count says (measured on issue 14's smooth
+        S2 case, 1,017 lines: the shifts' residuals about the trend correlate by 0.90, 0.75,
+        0.58, 0.38, 0.22, 0.09, 0.0 at distances 1-7, against 0.86-0.14 for the 7-row template).
 
     Returns
     -------
     coef, cov : ndarray (L, p), (L, p, p)
     """
     n, p = coef.shape
-    x = np.stack([np.ones(n), v, v * v], axis=1)
+    x = _trend_design(np.asarray(v, np.float64))
     if n < 4 * x.shape[1]:  # too few lines to tell a trend from their spread
         return coef, cov
     diag = np.maximum(np.diagonal(cov, axis1=1, axis2=2), 1e-300)
@@ -465,6 +505,7 @@ def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tup
     trend, trend_var = coef.copy(), np.zeros((n, p))
     for k in range(p):
         trend[:, k], trend_var[:, k], t[:, k, k] = random_effects(coef[:, k], diag[:, k], x)
+    trend_var *= line_correlation
     gain = t @ np.linalg.inv(t + cov)
     rest = np.eye(p) - gain
     shrunk = trend + np.einsum("lij,lj->li", gain, coef - trend)
@@ -472,7 +513,8 @@ def shrink_coefficients(coef: np.ndarray, cov: np.ndarray, v: np.ndarray) -> tup
     return shrunk, gain @ cov + rest @ (trend_var[:, :, None] * np.swapaxes(rest, 1, 2))
 
 
-def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correlation: int = 51) -> LineFit:
+def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correlation: int = 51,
+              line_correlation: float = 1.0) -> LineFit:
     """Least-squares polynomial of order ``order`` along every row from :data:`FIT_SUMS`.
 
     After the global polynomial, what is left of a scanner's displacement along one line is
@@ -494,6 +536,9 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
         Fewest matches a row needs for a fit.
     correlation : int
         Template length along the line (px): neighbouring matches share most of their template.
+    line_correlation : float
+        Template height (rows): neighbouring lines share most of their matches' rows
+        (:func:`shrink_coefficients`).
 
     Returns
     -------
@@ -519,15 +564,18 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
         return LineFit(**out, **var, lev=np.zeros((2, rows, 5)), ok=ok)
     inv = np.linalg.inv(N[ok])
     post = np.zeros((2, int(ok.sum()), p, p))
+    lines = line_coordinate(np.flatnonzero(ok), rows)
     for a, (name, r0, rr, v) in enumerate((("x", 5, 11, 13), ("y", 8, 12, 14))):
         rhs = s[r0 : r0 + p, ok].T
         coef = np.einsum("rij,rj->ri", inv, rhs)
         # residual sum of squares of a least-squares fit: sum(r^2) - coef . rhs
         ss = np.maximum(s[rr, ok] - np.einsum("ri,ri->r", coef, rhs), 0.0)
         noise = s[v, ok] / n[ok]
-        # how far the matches are shrunk: as tuned on issue 14's cases, the residuals' variance
-        # counted as if the matches were independent (smaller than the spread below)
-        var[f"tau2_{name}"][ok] = np.maximum(ss / (n[ok] - p) - noise, 0.0)
+        # how far the matches are shrunk: the residuals' variance counted as if the matches were
+        # independent (smaller than the spread below), less their noise; that estimate scatters
+        # as the residuals' variance over the row's n / correlation independent ones does
+        excess = ss / (n[ok] - p) - noise
+        var[f"tau2_{name}"][ok] = row_departures(excess, 2.0 * noise**2 * correlation / n[ok], lines)
         # the fit's own variance: neighbouring matches share their errors over ``correlation``
         # px, so a row holds about n / correlation independent ones and the fit takes p of them:
         # the residuals' variance over the rest (counted over n - p, the fit's sigma came out
@@ -535,7 +583,7 @@ def line_fits(sums: np.ndarray, *, order: int = 2, min_count: int = 102, correla
         dof = n[ok] - p * correlation
         spread = np.where(dof >= correlation, ss / np.maximum(dof, 1.0), noise)
         out[f"c{name}"][ok, :p], post[a] = shrink_coefficients(coef, (spread * correlation)[:, None, None] * inv,
-                                                               line_coordinate(np.flatnonzero(ok), rows))
+                                                               lines, line_correlation=line_correlation)
         var[f"spread_{name}"][ok] = spread
     # the fit's variance a(u)^T P a(u), a = (1, u, u^2)[:p], as a quartic in u; x and y apart
     lev = np.zeros((2, rows, 5))
