@@ -494,7 +494,8 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
             with timer("line estimates"):
                 correlation = 2 * opts.matching.alsc.radius + 1
                 rows, fits = row_corrections(field_, (dx, dy), opts.lines, correlation=correlation,
-                                             line_correlation=2 * opts.matching.alsc.ry + 1, sums=field_.get("line_sums"))
+                                             line_correlation=2 * opts.matching.alsc.ry + 1,
+                                             sums=field_.get("line_sums"))
                 field_ = line_field(result.store, grid.chunks, mapping, rows, fits, opts.lines, correlation=correlation)
         dx, dy = field_["dx"], field_["dy"]
         extra = {k: field_[k] for k in ("sigma_x", "sigma_y", "correlation")}
