@@ -110,9 +110,9 @@ def test_recovers_the_real_field(real_registrations, client, name, variant):
         assert f["groups"]["all"][1] < 0.12
     else:
         # measured: matched 85-88 % at 0.148-0.153 px (x 0.143-0.146, y 0.037-0.046), calibration
-        # 3.9-4.0 / 1.4-1.5 (two code revisions; 0.52 / 1.54 before and 0.52 / 1.76 after the rows'
-        # departures were shrunk toward their trend, issue 14): the real field varies in x within the 51 x 7
-        # template (relief between two orthos), which no template recovers; against the field
+        # 3.9-4.0 / 1.4-1.5 (two code revisions; 0.52 / 1.54 before and 0.52 / 1.76 after the
+        # rows' departures were shrunk toward their trend, issue 14): the real field varies in x
+        # within the 51 x 7 template (relief between two orthos), which no template recovers; against the field
         # averaged over the template, x 0.083, y 0.029 px
         assert share > 0.7
         assert rmse < 0.22

@@ -349,7 +349,7 @@ def test_lines_that_share_template_rows_count_as_fewer_for_the_trend():
     ratios = {1: [], rows: []}
     for seed in range(20):
         white = np.random.default_rng(seed).standard_normal(n + rows - 1)
-        errors = np.convolve(white, np.ones(rows), mode="valid") / np.sqrt(rows)  # sd 1, triangular correlation
+        errors = np.convolve(white, np.ones(rows), mode="valid") / np.sqrt(rows)  # sd 1, correlated 1 - d / 7
         coef = true + sd * errors[:, None]
         for f in ratios:
             shrunk, post = shrink_coefficients(coef, cov, v, line_correlation=f)
@@ -378,7 +378,8 @@ def test_row_departures_only_where_rows_depart_beyond_chance():
     truth = np.zeros(n_lines)
     truth[300:360] = 2.0 * noise
     shrunk = row_departures(truth + excess, sampling, v)
-    # partly shrunk toward the rows' trend (they are 60 of 800): measured 0.29-0.93 of their departure, 0.65 on average
+    # partly shrunk toward the rows' trend (they are 60 of 800): measured 0.29-0.93 of their
+    # departure, 0.65 on average
     assert shrunk[300:360].mean() > 0.5 * truth[300] and shrunk[300:360].min() > 0.2 * truth[300]
     assert np.sqrt(np.mean((shrunk - truth) ** 2)) < np.sqrt(np.mean((np.maximum(truth + excess, 0) - truth) ** 2))
 
