@@ -34,8 +34,10 @@ log = logging.getLogger(__name__)
 #: faults and 1.2-2.4 s of system time in the workers, every run); ``MALLOC_TOP_PAD_`` grows and
 #: keeps it 256 MiB at a time: 17-30 thousand faults and 0.5-0.8 s after a worker's first job;
 #: the job 7.6 -> 6.9 s and 7.61 -> 7.42 s (two series of runs alternated on fresh clusters),
-#: 4096² 26.5 -> 24.8 s, peak worker memory about the same (issue 12's notes). glibc reads all three when the process starts, so they must reach it through the
-#: environment it starts with (the nanny's ``pre-spawn-environ``, see :data:`WORKER_CONFIG`).
+#: 4096² 26.5 -> 24.8 s, peak worker memory about the same (issue 12's notes); mmap's threshold
+#: raised to 256 MiB changed neither time nor memory (three alternated pairs of clusters). glibc
+#: reads all three when the process starts, so they must reach it through the environment it
+#: starts with (the nanny's ``pre-spawn-environ``, see :data:`WORKER_CONFIG`).
 #: This is the one definition: the preload (``workers/geocoder_preload.py``) imports it, and the
 #: ``ENV`` of ``workers/Dockerfile`` must repeat it (tests/test_worker_env.py compares them).
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1",
