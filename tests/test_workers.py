@@ -107,6 +107,17 @@ def _squares(n: int) -> dict:
     return {f"t{i}": dask.delayed(_square, pure=False)(i, dask_key_name=f"t{i}") for i in range(n)}
 
 
+def _wait_idle(client: Client, timeout: float = 60.0) -> None:
+    """Until both workers of the session's cluster are up and run nothing: a test that counts where
+    its tasks run needs them free (a task an earlier test gave up may still be finishing on one, and
+    the scheduler then sends every new task to the other)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if sum(client.nthreads().values()) == 2 and not any(client.processing().values()):
+            return
+        time.sleep(0.05)
+
+
 def _compute_counting(client: Client, tasks: dict, on_yield=None) -> tuple[dict, list[int]]:
     """Results, and at every yield how many tasks were submitted and not yet yielded.
 
@@ -167,6 +178,7 @@ def _pid_block(table: np.ndarray, seconds: float) -> np.ndarray:
 def test_a_shared_input_does_not_draw_its_few_tasks_to_one_worker(client):
     """The tiles of a small scene reading one constant (fewer than the scheduler queues as root
     tasks): with the constant on one worker, three or four of the four ran there one after another."""
+    _wait_idle(client)
     tab = shared_input(np.arange(60_000, dtype=np.float64), "table-x")
     blocks = da.map_blocks(_pid_block, tab, 0.1, chunks=((1, 1), (1, 1)), dtype=np.int64, name="pid-block-x")
     pids, counts = np.unique(blocks.compute(), return_counts=True)
@@ -218,6 +230,7 @@ def test_an_error_leaves_no_task_writing_behind_it(client, tmp_path):
 def test_a_few_long_tasks_run_one_per_thread(client):
     """Four tiles on two threads: one each in flight, the next to whichever thread frees first
     (submitted together, each worker got two and the faster one idled at the end)."""
+    _wait_idle(client)
     results, in_flight = _compute_counting(client, _squares(4))
     assert results == {f"t{i}": i * i for i in range(4)}
     assert max(in_flight) <= sum(client.nthreads().values()) == 2
