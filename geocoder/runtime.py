@@ -370,6 +370,8 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     tasks_of = dict(items)
     try:
         for fut, value in queue:
+            if fut.status == "cancelled" and isinstance(value, BaseException):
+                raise value  # as_completed hands a cancelled future's error over as its result (scheduler lost)
             key, _ = running.pop(id(fut))
             fut.release()
             for _, (k, task) in zip(range(room()), rest):
