@@ -21,6 +21,13 @@ from ..kernels.robust import StopReason, robust_fit
 from .tiepoints import TiePoints
 
 
+#: Standard deviation (px, per axis) of an unrefined pair, at least: both interest points lie on
+#: whole pixels, each within half a pixel of its feature (uniform), so their difference scatters
+#: by sqrt(2 / 12) from that alone (0.53-0.59 px measured in tests/test_correspondence.py, where
+#: the maxima of the warped texture move too).
+PAIR_SIGMA = float(np.sqrt(2.0 / 12.0))
+
+
 @dataclass(frozen=True)
 class CorrespondenceOptions:
     """Options of the correspondence step.
@@ -75,6 +82,8 @@ def correspond(
     dist_points: InterestPoints,
     predict: PolyMap,
     opts: CorrespondenceOptions = CorrespondenceOptions(),
+    *,
+    refine: bool = True,
 ) -> tuple[TiePoints, TileMatchStats]:
     """Find and refine point pairs for the base points of one tile.
 
@@ -87,6 +96,10 @@ def correspond(
         Interest points (global coordinates) of the tile and of the distorted window.
     predict : PolyMap
         Current prediction, base pixel -> distorted pixel (global frames).
+    refine : bool
+        Refine every pair by least squares. False: the pairs as the interest points place them
+        (whole pixels, sigma :data:`PAIR_SIGMA`), for a polynomial that only predicts where a
+        later guided pass refines every base point (:func:`correspond_guided`).
 
     Returns
     -------
@@ -138,6 +151,11 @@ def correspond(
     stats["robust"] = int(ii.size)
     if ii.size == 0:
         return empty, TileMatchStats(**stats, reason="no pair survived")
+    if not refine:
+        sigma = np.full(ii.size, PAIR_SIGMA)
+        tp = TiePoints.build(base_x=base_points.x[ii], base_y=base_points.y[ii], dist_x=dist_points.x[jj],
+                             dist_y=dist_points.y[jj], weight=weight[good], rho=rho[good], sigma_x=sigma, sigma_y=sigma)
+        return tp, TileMatchStats(**stats, reason="ok")
     # refine from the paired distorted point; the tile affine's linear part corrects the
     # local geometry of the prediction
     lin = local.jacobian(base_points.x[ii], base_points.y[ii])  # d(correction)/d(x, y)

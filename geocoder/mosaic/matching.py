@@ -66,6 +66,7 @@ class _Pair:
     tiepoints: TiePoints | None = None
     mapping: PolyMap | None = None
     error: GeocoderError | None = None
+    refined: bool = False  # its tie points refined by least squares (pass 1's pairs are not, when passes follow)
 
 
 def scene_points(job: Job, names: list[str], images: list[xr.DataArray], readers: list[WindowReader],
@@ -111,13 +112,13 @@ def _subset(points: InterestPoints, mask: np.ndarray) -> InterestPoints:
 
 def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_reader: WindowReader,
                 bpts: InterestPoints, dpts: InterestPoints, predict: PolyMap, opts: RegisterOptions,
-                guided: bool) -> dict:
+                guided: bool, refine: bool = True) -> dict:
     """One task per base tile of the pair that has points and maps into the distorted scene
     (the tasks of :func:`~geocoder.pipeline.correspond.match_tiles`), keyed ``<pair>.<tile>-<token>``."""
     copts = opts.correspondence
     band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
     dshape = dist_reader.shape[1:]
-    token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dband, predict.coef, copts, guided)
+    token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dband, predict.coef, copts, guided, refine)
     margin = copts.d_max + copts.margin * 2 + 2
     tasks = {}
     for tile in grid:
@@ -130,7 +131,7 @@ def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_rea
         dsel = (dpts.y >= dwin[0]) & (dpts.y < dwin[1]) & (dpts.x >= dwin[2]) & (dpts.x < dwin[3])
         tasks[f"{pair.spec.name}.{tile.key}-{token[:12]}"] = dask.delayed(_tile_task, pure=True)(
             tile, base_reader, dist_reader, band, dband, _subset(bpts, inside), _subset(dpts, dsel), predict, dwin,
-            copts, guided, dask_key_name=f"correspond-{pair.spec.name}-{tile.key}-{token}")
+            copts, guided, refine, dask_key_name=f"correspond-{pair.spec.name}-{tile.key}-{token}")
     return tasks
 
 
@@ -227,12 +228,13 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
         p.coarse = value
         grids[p.spec.base] = TileGrid.from_chunks(base.data.chunks[1:])
 
-    def round_(label: str, todo: list[_Pair], predicts: list[PolyMap], guided: bool) -> list[TiePoints]:
+    def round_(label: str, todo: list[_Pair], predicts: list[PolyMap], guided: bool, refine: bool = True
+               ) -> list[TiePoints]:
         """One correspondence pass of ``todo`` as one stage; the tie points gathered per pair."""
         tasks, mine = {}, []
         for p, predict in zip(todo, predicts):
             t = _pair_tasks(p, grids[p.spec.base], readers[p.spec.base], readers[p.spec.dist],
-                            points[p.spec.base], points[p.spec.dist], predict, opts, guided)
+                            points[p.spec.base], points[p.spec.dist], predict, opts, guided, refine)
             mine.append(list(t))
             tasks.update(t)
         done = job.run_tiles(f"{stage}-{label}", tasks, phase=f"correspondence {label} ({stage}, {len(todo)} pairs)")
@@ -243,17 +245,21 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
         p.error = MatchingError(f"only {n} tie points found between {base.attrs['source']} and {dist.attrs['source']}")
 
     live = [p for p in pairs if p.error is None]
-    # pass 1: pairs of interest points (seed 000 sec. 4.4) from the coarse prediction; where
-    # that finds too few but the coarse alignment is a full affine, guided from it instead;
-    # guided at once from a placement
+    # pass 1: pairs of interest points (seed 000 sec. 4.4) from the coarse prediction, not
+    # refined when guided passes follow (as in find_tiepoints); where that finds too few but
+    # the coarse alignment is a full affine, guided from it instead; guided at once from a placement
     found: dict[int, TiePoints] = {}
     for guided, todo in ((False, [p for p in live if not p.spec.placed]), (True, [p for p in live if p.spec.placed])):
         if todo:
             found.update(zip(map(id, todo), round_("pass-1-placed" if guided else "pass-1", todo,
-                                                   [p.coarse.mapping for p in todo], guided)))
+                                                   [p.coarse.mapping for p in todo], guided, guided or opts.passes < 2)))
+            for p in todo:
+                p.refined = guided or opts.passes < 2
     retry = [p for p in live if len(found[id(p)]) < opts.min_tiepoints and p.coarse.affine]
     if retry:
         found.update(zip(map(id, retry), round_("pass-1-guided", retry, [p.coarse.mapping for p in retry], True)))
+        for p in retry:
+            p.refined = True
     for p in live:
         if len(found[id(p)]) < opts.min_tiepoints:
             fail(p, len(found[id(p)]))
@@ -270,8 +276,17 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
         for p, tp in zip(live, again):
             if len(tp) >= opts.min_tiepoints:
                 p.tiepoints, p.mapping = fit_global(tp, order=opts.order)
+                p.refined = True
                 kept.append(p)
         live = kept
+    # a pair whose guided passes all found too few: pass 1's pairs refined, as its tie points
+    todo = [p for p in pairs if p.error is None and not p.refined]
+    if todo:
+        for p, tp in zip(todo, round_("pass-1-refined", todo, [p.coarse.mapping for p in todo], False)):
+            if len(tp) < opts.min_tiepoints:
+                fail(p, len(tp))
+            else:
+                p.tiepoints, p.mapping = fit_global(tp, order=opts.order)
     return [p.error if p.error is not None else (p.tiepoints, p.mapping, p.coarse) for p in pairs]
 
 

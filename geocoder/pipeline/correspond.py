@@ -36,7 +36,7 @@ def distorted_window(tile: Tile, predict: PolyMap, margin: float) -> Window:
     return Window.around(py, px, margin)
 
 
-def _tile_task(tile, base_reader, dist_reader, band, dist_band, bpts, dpts, predict, dwin, opts, guided):
+def _tile_task(tile, base_reader, dist_reader, band, dist_band, bpts, dpts, predict, dwin, opts, guided, refine=True):
     m = opts.margin
     r0, r1, c0, c1 = tile.window(m)
     base = base_reader.read(r0, r1, c0, c1)[band]
@@ -44,7 +44,7 @@ def _tile_task(tile, base_reader, dist_reader, band, dist_band, bpts, dpts, pred
     dist = dist_reader.read(dr0, dr1, dc0, dc1)[dist_band]
     if guided:
         return correspond_guided(base, (r0, c0), bpts, dist, (dr0, dc0), predict, opts)
-    return correspond(base, (r0, c0), bpts, dist, (dr0, dc0), dpts, predict, opts)
+    return correspond(base, (r0, c0), bpts, dist, (dr0, dc0), dpts, predict, opts, refine=refine)
 
 
 @dataclass(frozen=True)
@@ -68,13 +68,15 @@ def match_tiles(
     dist_band: int = 0,
     opts: CorrespondenceOptions = CorrespondenceOptions(),
     guided: bool = False,
+    refine: bool = True,
     job: Job | None = None,
     stage: str = "correspondence",
 ) -> tuple[TiePoints, list[TileMatchStats]]:
-    """Match every tile in parallel: point pairs (seed 000 sec. 4.4) or, with ``guided``,
-    least squares from the prediction (:func:`~geocoder.match.correspondence.correspond_guided`)."""
+    """Match every tile in parallel: point pairs (seed 000 sec. 4.4; refined by least squares
+    unless ``refine`` is False) or, with ``guided``, least squares from the prediction
+    (:func:`~geocoder.match.correspondence.correspond_guided`)."""
     dshape = dist_reader.shape[1:]
-    token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dist_band, predict.coef, opts, guided)
+    token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dist_band, predict.coef, opts, guided, refine)
     tasks = {}
     for tile in grid:
         inside = tile.contains(base_points.x, base_points.y)
@@ -87,7 +89,7 @@ def match_tiles(
         dsel = (dist_points.y >= dwin[0]) & (dist_points.y < dwin[1]) & (dist_points.x >= dwin[2]) & (dist_points.x < dwin[3])
         tasks[tile.key] = dask.delayed(_tile_task, pure=True)(
             tile, base_reader, dist_reader, band, dist_band,
-            _subset(base_points, inside), _subset(dist_points, dsel), predict, dwin, opts, guided,
+            _subset(base_points, inside), _subset(dist_points, dsel), predict, dwin, opts, guided, refine,
             dask_key_name=f"correspond-{tile.key}-{token}",
         )
     results = list(run_tiles(job, f"{stage}-{token[:12]}", tasks, phase=stage).values())

@@ -278,13 +278,18 @@ def find_tiepoints(
     tp, mapping = TiePoints.empty(), predict
     with timer("correspondence"):
         # pass 1: pairs of interest points (seed 000 sec. 4.4); if the images defeat it but
-        # the coarse alignment is a full affine, match from the coarse prediction instead
+        # the coarse alignment is a full affine, match from the coarse prediction instead.
+        # When guided passes follow, pass 1's polynomial only predicts where they refine every
+        # base point, so its pairs stay where the interest points put them (a third of the
+        # correspondence's work; the tie points are the later passes')
         match = partial(match_tiles, base_reader, dist_reader, grid, bpts, dpts, band=band, dist_band=dband, opts=copts, job=job)
-        found, _ = match(predict, stage="correspondence (pass 1)")
+        refined = opts.passes < 2
+        found, _ = match(predict, refine=refined, stage="correspondence (pass 1)")
         summary.pass_tiepoints.append(len(found))
         if len(found) < opts.min_tiepoints and coarse.affine:
             found, _ = match(predict, guided=True, stage="correspondence (pass 1, guided)")
             summary.pass_tiepoints.append(len(found))
+            refined = True
         if len(found) < opts.min_tiepoints:
             raise MatchingError(
                 f"only {len(found)} tie points found between {base.attrs['source']} and {dist.attrs['source']}"
@@ -296,6 +301,15 @@ def find_tiepoints(
             summary.pass_tiepoints.append(len(found))
             if len(found) < opts.min_tiepoints:
                 break
+            tp, mapping = fit_global(found, order=opts.order)
+            refined = True
+        if not refined:  # no guided pass found enough: pass 1's pairs refined, as the tie points
+            found, _ = match(predict, stage="correspondence (pass 1, refined)")
+            summary.pass_tiepoints.append(len(found))
+            if len(found) < opts.min_tiepoints:
+                raise MatchingError(
+                    f"only {len(found)} tie points found between {base.attrs['source']} and {dist.attrs['source']}"
+                )
             tp, mapping = fit_global(found, order=opts.order)
     summary.tiepoints = len(tp)
     summary.inliers = int(tp.inlier.sum())

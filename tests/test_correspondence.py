@@ -1,0 +1,50 @@
+"""Correspondence of interest points (seed 000 sec. 4.4) on one window with a known field:
+the pairs as the interest points place them, and refined by least squares."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from geocoder.kernels.interest import detect
+from geocoder.kernels.polynomial import fit_polymap
+from geocoder.match.correspondence import PAIR_SIGMA, correspond
+from geocoder.simulate.texture import synthetic_ortho
+from geocoder.simulate.warp import make_pair
+
+
+def _window_pair():
+    src = synthetic_ortho((352, 352), seed=4)
+    pair = make_pair(src, shape=(256, 256), seed=4, max_displacement=6.0, margin=48)
+    base, dist = pair.base[0], pair.distorted[0]
+    bpts, dpts = detect(base), detect(np.nan_to_num(dist, nan=float(np.nanmean(dist))))
+    # the prediction of pass 1: the field's affine part, off by a few pixels where it curves
+    ys, xs = np.mgrid[0:256:16, 0:256:16]
+    predict = fit_polymap(xs.ravel() * 1.0, ys.ravel() * 1.0, (xs + pair.dx[ys, xs]).ravel(),
+                          (ys + pair.dy[ys, xs]).ravel(), order=1, robust=False)
+    return pair, base, dist, bpts, dpts, predict
+
+
+def _errors(pair, tp):
+    bx, by = tp.base_x.astype(int), tp.base_y.astype(int)
+    return tp.dist_x - (bx + pair.dx[by, bx]), tp.dist_y - (by + pair.dy[by, bx])
+
+
+def test_unrefined_pairs_sit_on_the_interest_points_and_refinement_moves_them_onto_the_truth():
+    pair, base, dist, bpts, dpts, predict = _window_pair()
+    coarse, stats = correspond(base, (0, 0), bpts, dist, (0, 0), dpts, predict, refine=False)
+    fine, fine_stats = correspond(base, (0, 0), bpts, dist, (0, 0), dpts, predict)
+    assert stats.reason == fine_stats.reason == "ok"
+    assert stats.robust == fine_stats.robust >= 50 and stats.refined == 0 and fine_stats.refined > 0.8 * stats.robust
+    # the unrefined pair is the two interest points: whole pixels, the quantisation's sigma
+    assert set(zip(coarse.dist_x, coarse.dist_y)) <= set(zip(dpts.x, dpts.y))
+    np.testing.assert_array_equal(coarse.dist_x, np.round(coarse.dist_x))
+    assert np.all(coarse.sigma_x == PAIR_SIGMA) and np.all(coarse.sigma_y == PAIR_SIGMA)
+    ex, ey = _errors(pair, coarse)
+    rms = float(np.sqrt(np.mean(np.r_[ex, ey] ** 2)))
+    # two independent whole-pixel positions: sqrt(2 / 12) = 0.41 px per axis if each is within
+    # half a pixel of its feature; the Foerstner maxima of warped texture scatter a little more
+    assert 0.2 < rms < 0.8, rms
+    # the same base points, refined: a hundredth of a pixel
+    fx, fy = _errors(pair, fine)
+    assert float(np.sqrt(np.mean(np.r_[fx, fy] ** 2))) < 0.05
+    assert set(fine.base_x + 1j * fine.base_y) <= set(coarse.base_x + 1j * coarse.base_y)
