@@ -48,3 +48,21 @@ def test_unrefined_pairs_sit_on_the_interest_points_and_refinement_moves_them_on
     fx, fy = _errors(pair, fine)
     assert float(np.sqrt(np.mean(np.r_[fx, fy] ** 2))) < 0.05
     assert set(fine.base_x + 1j * fine.base_y) <= set(coarse.base_x + 1j * coarse.base_y)
+
+
+def test_pass_one_stays_unrefined_only_with_many_points_in_the_overlap():
+    from geocoder.kernels.interest import InterestPoints
+    from geocoder.pipeline.correspond import UNREFINED_POINTS_PER_TERM, refine_first_pass
+
+    rng = np.random.default_rng(0)
+    need = UNREFINED_POINTS_PER_TERM * 6  # the quadratic's six terms
+    x, y = rng.uniform(0, 2000, need + 100), rng.uniform(0, 2000, need + 100)
+    many = InterestPoints(x, y, np.ones_like(x), np.ones_like(x))
+    few = InterestPoints(x[: need - 1], y[: need - 1], np.ones(need - 1), np.ones(need - 1))
+    same = fit_polymap(x, y, x, y, order=1, robust=False)
+    assert not refine_first_pass(many, same, (2000, 2000), order=2, passes=2)
+    assert refine_first_pass(few, same, (2000, 2000), order=2, passes=2)
+    assert refine_first_pass(many, same, (2000, 2000), order=2, passes=1)  # its pairs are the tie points
+    # the same points, most of them predicted beyond a small distorted scene
+    assert refine_first_pass(many, same, (1000, 1000), order=2, passes=2)
+    assert refine_first_pass(many, same, (2000, 2000), order=3, passes=2)  # ten terms need more

@@ -20,7 +20,6 @@ from ..kernels.polynomial import PolyMap, fit_polymap
 from ..kernels.robust import StopReason, robust_fit
 from .tiepoints import TiePoints
 
-
 #: Standard deviation (px, per axis) of an unrefined pair, at least: both interest points lie on
 #: whole pixels, each within half a pixel of its feature (uniform), so their difference scatters
 #: by sqrt(2 / 12) from that alone (0.53-0.59 px measured in tests/test_correspondence.py, where

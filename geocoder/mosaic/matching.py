@@ -32,7 +32,7 @@ from ..kernels.polynomial import PolyMap
 from ..match.coarse import CoarseAlignment, Hypothesis
 from ..match.tiepoints import TiePoints
 from ..pipeline.coarse import _align, georeference_prior, overview, overview_factor
-from ..pipeline.correspond import _tile_task, distorted_window, fit_global
+from ..pipeline.correspond import _tile_task, distorted_window, fit_global, refine_first_pass
 from ..pipeline.detect import interest_points_many
 from ..pipeline.job import Job
 from ..pipeline.register import RegisterOptions, _check_overlap
@@ -228,13 +228,14 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
         p.coarse = value
         grids[p.spec.base] = TileGrid.from_chunks(base.data.chunks[1:])
 
-    def round_(label: str, todo: list[_Pair], predicts: list[PolyMap], guided: bool, refine: bool = True
+    def round_(label: str, todo: list[_Pair], predicts: list[PolyMap], guided: bool, refine: list[bool] | None = None
                ) -> list[TiePoints]:
-        """One correspondence pass of ``todo`` as one stage; the tie points gathered per pair."""
+        """One correspondence pass of ``todo`` as one stage (pass 1's pairs refined per ``refine``,
+        default all); the tie points gathered per pair."""
         tasks, mine = {}, []
-        for p, predict in zip(todo, predicts):
+        for p, predict, r in zip(todo, predicts, refine or [True] * len(todo)):
             t = _pair_tasks(p, grids[p.spec.base], readers[p.spec.base], readers[p.spec.dist],
-                            points[p.spec.base], points[p.spec.dist], predict, opts, guided, refine)
+                            points[p.spec.base], points[p.spec.dist], predict, opts, guided, r)
             mine.append(list(t))
             tasks.update(t)
         done = job.run_tiles(f"{stage}-{label}", tasks, phase=f"correspondence {label} ({stage}, {len(todo)} pairs)")
@@ -245,16 +246,20 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
         p.error = MatchingError(f"only {n} tie points found between {base.attrs['source']} and {dist.attrs['source']}")
 
     live = [p for p in pairs if p.error is None]
-    # pass 1: pairs of interest points (seed 000 sec. 4.4) from the coarse prediction, not
-    # refined when guided passes follow (as in find_tiepoints); where that finds too few but
-    # the coarse alignment is a full affine, guided from it instead; guided at once from a placement
+    # pass 1: pairs of interest points (seed 000 sec. 4.4) from the coarse prediction, left
+    # unrefined on a pair with many points when guided passes follow (refine_first_pass, as in
+    # find_tiepoints); where that finds too few but the coarse alignment is a full affine,
+    # guided from it instead; guided at once from a placement
     found: dict[int, TiePoints] = {}
+    for p in live:
+        dist = images[p.spec.dist]
+        p.refined = p.spec.placed or refine_first_pass(points[p.spec.base], p.coarse.mapping,
+                                                       (dist.sizes["y"], dist.sizes["x"]), order=opts.order,
+                                                       passes=opts.passes)
     for guided, todo in ((False, [p for p in live if not p.spec.placed]), (True, [p for p in live if p.spec.placed])):
         if todo:
             found.update(zip(map(id, todo), round_("pass-1-placed" if guided else "pass-1", todo,
-                                                   [p.coarse.mapping for p in todo], guided, guided or opts.passes < 2)))
-            for p in todo:
-                p.refined = guided or opts.passes < 2
+                                                   [p.coarse.mapping for p in todo], guided, [p.refined for p in todo])))
     retry = [p for p in live if len(found[id(p)]) < opts.min_tiepoints and p.coarse.affine]
     if retry:
         found.update(zip(map(id, retry), round_("pass-1-guided", retry, [p.coarse.mapping for p in retry], True)))

@@ -15,7 +15,7 @@ import dask
 import numpy as np
 
 from ..kernels.interest import InterestPoints
-from ..kernels.polynomial import PolyMap, fit_polymap
+from ..kernels.polynomial import PolyMap, exponents, fit_polymap
 from ..match.correspondence import CorrespondenceOptions, TileMatchStats, correspond, correspond_guided
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
@@ -95,6 +95,32 @@ def match_tiles(
     results = list(run_tiles(job, f"{stage}-{token[:12]}", tasks, phase=stage).values())
     tps = TiePoints.concatenate([r[0] for r in results])
     return tps, [r[1] for r in results]
+
+
+#: Base points in the overlap per polynomial term that pass 1 needs before its pairs may stay
+#: unrefined (:func:`refine_first_pass`). An unrefined pair scatters by 0.5-0.6 px per axis
+#: (tests/test_correspondence.py) and about half the base points pair, so 250 per term give the
+#: pass's polynomial ~0.05 px on average where the pairs are. With the 20-40 pairs of the small
+#: overlaps of tests/test_mosaic_neighbours.py it was ~0.5 px off: the guided pass then kept
+#: 29 of 54 points on one pair, and the block's RMSE rose 0.2 -> 0.27 px.
+UNREFINED_POINTS_PER_TERM = 250
+
+
+def refine_first_pass(points: InterestPoints, predict: PolyMap, dist_shape: tuple[int, int], *, order: int,
+                      passes: int) -> bool:
+    """Whether correspondence pass 1 must refine its pairs by least squares.
+
+    Pass 1's tie points become the job's when no guided pass follows (``passes < 2``);
+    otherwise its polynomial only predicts where the guided passes refine every base point,
+    and whole-pixel pairs do that as well when there are many: at least
+    :data:`UNREFINED_POINTS_PER_TERM` base points per term of the order-``order`` polynomial
+    whose prediction falls inside the distorted scene (``dist_shape``, rows and columns).
+    """
+    if passes < 2:
+        return True
+    x, y = predict(points.x, points.y)
+    inside = (x >= 0) & (x < dist_shape[1]) & (y >= 0) & (y < dist_shape[0])
+    return int(inside.sum()) < UNREFINED_POINTS_PER_TERM * len(exponents(order))
 
 
 def fit_global(tiepoints: TiePoints, *, order: int = 2) -> tuple[TiePoints, PolyMap]:

@@ -47,7 +47,7 @@ from ..status import Status
 from ..tiles import TileGrid
 from .bands import Bands
 from .coarse import overview, overview_factor, submit_coarse_alignment
-from .correspond import fit_global, match_tiles
+from .correspond import fit_global, match_tiles, refine_first_pass
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points_many
 from .job import Job, JobRun, fingerprint, input_identity
@@ -280,10 +280,10 @@ def find_tiepoints(
         # pass 1: pairs of interest points (seed 000 sec. 4.4); if the images defeat it but
         # the coarse alignment is a full affine, match from the coarse prediction instead.
         # When guided passes follow, pass 1's polynomial only predicts where they refine every
-        # base point, so its pairs stay where the interest points put them (a third of the
-        # correspondence's work; the tie points are the later passes')
+        # base point, so on a scene with many points its pairs stay where the interest points
+        # put them (a third of the correspondence's work; the tie points are the later passes')
         match = partial(match_tiles, base_reader, dist_reader, grid, bpts, dpts, band=band, dist_band=dband, opts=copts, job=job)
-        refined = opts.passes < 2
+        refined = refine_first_pass(bpts, predict, dist_shape, order=opts.order, passes=opts.passes)
         found, _ = match(predict, refine=refined, stage="correspondence (pass 1)")
         summary.pass_tiepoints.append(len(found))
         if len(found) < opts.min_tiepoints and coarse.affine:
