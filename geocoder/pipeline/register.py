@@ -26,10 +26,12 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
+from dask.delayed import Delayed
 
 from .. import progress, storage
 from ..conventions import georeference, pixel_grid, status_attrs
 from ..errors import InputError, MatchingError
+from ..kernels.figures import chunk_figures, combine_figures
 from ..kernels.interest import InterestPoints
 from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
@@ -46,7 +48,7 @@ from ..scene import WindowReader, ingest_scenes, open_scene
 from ..status import Status
 from ..tiles import TileGrid
 from .bands import Bands
-from .coarse import overview, overview_factor, submit_coarse_alignment
+from .coarse import overview_factor, submit_coarse_alignment
 from .correspond import fit_global, match_tiles, refine_first_pass
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points_many
@@ -466,10 +468,10 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
     band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
     factor = overview_factor(bscene, dscene)
 
-    def figures(b: int) -> Callable[[xr.DataArray], tuple]:
+    def figures(b: int) -> Callable[[xr.DataArray], Delayed]:
         # the content check's figures and the coarse alignment's overview of the matching band,
         # made from the chunks as they are ingested (not by two more passes over the stores)
-        return lambda image: (*_band_statistics(image.data[b : b + 1]), overview(image.isel(band=b), factor).data)
+        return lambda image: ingest_figures(image.data, b, factor)
 
     with timer("ingest"):
         ingested = ingest_all(job, {"base": bscene, "distorted": dscene}, opts.tile, c,
@@ -559,6 +561,23 @@ def _check_content(scenes: list[tuple[xr.DataArray, int]], figures: list[tuple] 
             raise InputError(source, f"band {band} has only {int(n)} valid pixels; registration needs at least {MIN_SIDE**2}")
         if lo == hi:
             raise InputError(source, f"band {band} is constant ({float(lo):g} everywhere): there is nothing to match")
+
+
+def ingest_figures(image: da.Array, band: int, factor: int) -> Delayed:
+    """Lazy figures of band ``band`` (0-based) of a ``(band, y, x)`` scene, one task per chunk
+    (:mod:`geocoder.kernels.figures`): ``(count, minimum, maximum)`` of its finite pixels as
+    :func:`_band_statistics` gives them, and its block mean over ``factor`` squares as
+    :func:`geocoder.pipeline.coarse.overview` gives it.
+
+    The chunks are taken from ``image``'s own graph (not optimised apart), so computed with the
+    store's writes they are read once for both.
+    """
+    cells = (image.shape[1] // factor, image.shape[2] // factor)
+    rows, cols = np.r_[0, np.cumsum(image.chunks[1])], np.r_[0, np.cumsum(image.chunks[2])]
+    blocks = image.to_delayed(optimize_graph=False)
+    parts = [dask.delayed(chunk_figures, pure=True)(blocks[0, i, j], band, int(rows[i]), int(cols[j]), factor, cells)
+             for i in range(len(rows) - 1) for j in range(len(cols) - 1)]
+    return dask.delayed(combine_figures, pure=True)(parts, cells)
 
 
 def _band_statistics(image: da.Array) -> tuple[da.Array, da.Array, da.Array]:
