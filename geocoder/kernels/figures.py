@@ -4,8 +4,8 @@ Ingesting a scene, :func:`geocoder.pipeline.register.register` needs the matchin
 of finite pixels, their minimum and maximum (the content check) and its block mean over
 ``factor``-pixel squares (the coarse alignment's overview, NaN-aware, incomplete squares at the
 right and bottom edge left out as ``xarray``'s ``coarsen(boundary="trim")`` does). Dask's
-reductions made each of those its own task per chunk (six per chunk and scene: 1,500 tasks for
-two 8192² scenes, a quarter of the job's); :func:`chunk_figures` makes them in one loop over a
+reductions made each of those its own task per chunk (six per chunk and scene, ~900 tasks with
+their partial reductions for two 8192² scenes: two fifths of the job's); :func:`chunk_figures` makes them in one loop over a
 chunk, and :func:`combine_figures` adds the chunks' parts, whatever the chunks' alignment to the
 squares.
 """
