@@ -285,6 +285,11 @@ def find_tiepoints(
         # base point, so on a scene with many points its pairs stay where the interest points
         # put them (a third of the correspondence's work; the tie points are the later passes')
         match = partial(match_tiles, base_reader, dist_reader, grid, bpts, dpts, band=band, dist_band=dband, opts=copts, job=job)
+
+        def too_few(found: TiePoints) -> MatchingError:
+            return MatchingError(f"only {len(found)} tie points found between {base.attrs['source']} and "
+                                 f"{dist.attrs['source']}")
+
         refined = refine_first_pass(bpts, predict, dist_shape, order=opts.order, passes=opts.passes)
         found, _ = match(predict, refine=refined, stage="correspondence (pass 1)")
         summary.pass_tiepoints.append(len(found))
@@ -293,9 +298,7 @@ def find_tiepoints(
             summary.pass_tiepoints.append(len(found))
             refined = True
         if len(found) < opts.min_tiepoints:
-            raise MatchingError(
-                f"only {len(found)} tie points found between {base.attrs['source']} and {dist.attrs['source']}"
-            )
+            raise too_few(found)
         tp, mapping = fit_global(found, order=opts.order)
         # later passes: every base point matched from the fitted polynomial
         for i in range(1, opts.passes):
@@ -309,9 +312,7 @@ def find_tiepoints(
             found, _ = match(predict, stage="correspondence (pass 1, refined)")
             summary.pass_tiepoints.append(len(found))
             if len(found) < opts.min_tiepoints:
-                raise MatchingError(
-                    f"only {len(found)} tie points found between {base.attrs['source']} and {dist.attrs['source']}"
-                )
+                raise too_few(found)
             tp, mapping = fit_global(found, order=opts.order)
     summary.tiepoints = len(tp)
     summary.inliers = int(tp.inlier.sum())
