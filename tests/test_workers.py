@@ -107,22 +107,33 @@ def _squares(n: int) -> dict:
     return {f"t{i}": dask.delayed(_square, pure=False)(i, dask_key_name=f"t{i}") for i in range(n)}
 
 
+def _running_on_worker(dask_worker=None) -> int:
+    """Tasks the worker's threads still run, those the scheduler has already forgotten included
+    (a cancelled task runs on until it returns)."""
+    return len(dask_worker.state.executing) + len(dask_worker.state.long_running)
+
+
 def _wait_idle(client: Client, timeout: float = 60.0) -> None:
     """Until both workers of the session's cluster are up and run nothing: a test that counts where
-    its tasks run needs them free (a task an earlier test gave up may still be finishing on one, and
-    the scheduler then sends every new task to the other)."""
+    its tasks run needs them free. A task an earlier test gave up may still be finishing on one;
+    the scheduler no longer lists it, so each worker is asked (in CI the scheduler's view alone let
+    a test start beside such a task, and work stealing then moved all four of its tasks to the other
+    worker)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if sum(client.nthreads().values()) == 2 and not any(client.processing().values()):
+        if (sum(client.nthreads().values()) == 2 and not any(client.processing().values())
+                and not any(client.run(_running_on_worker).values())):
             return
         time.sleep(0.05)
+    pytest.fail(f"the session's two workers were not idle within {timeout:.0f} s")
 
 
 def _compute_counting(client: Client, tasks: dict, on_yield=None) -> tuple[dict, list[int]]:
     """Results, and at every yield how many tasks were submitted and not yet yielded.
 
-    Counted from the client's futures minus the keys already yielded, so a release still on
-    its way to the scheduler does not count, and the count does not depend on when tasks finish.
+    Counted from the client's futures of these tasks minus the keys already yielded, so a release
+    still on its way to the scheduler does not count, the count does not depend on when tasks
+    finish, and a future an earlier test of the session still holds does not count either.
     """
     results: dict = {}
     in_flight: list[int] = []
@@ -131,7 +142,7 @@ def _compute_counting(client: Client, tasks: dict, on_yield=None) -> tuple[dict,
             results[key] = value
             if on_yield is not None:
                 on_yield(n)
-            in_flight.append(len(set(client.futures) - set(results)))
+            in_flight.append(len((set(client.futures) & set(tasks)) - set(results)))
     return results, in_flight
 
 
