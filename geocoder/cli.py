@@ -118,9 +118,12 @@ class _Main(click.Group):
             _wait_for_zarr_at_exit()
 
     def _main(self, args, prog_name, complete_var, **extra):
+        from .interrupts import keep_dropped_interrupts
+
         args = _group_options_first(list(sys.argv[1:] if args is None else args), self)
         try:
-            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+            with keep_dropped_interrupts():
+                rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
         except click.exceptions.UsageError as exc:
             hint = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
             _fail(exc.format_message() + hint, EXIT_INPUT)

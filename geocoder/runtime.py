@@ -14,6 +14,7 @@ from distributed import Client, LocalCluster, WorkerPlugin, as_completed
 
 from ._version import __version__
 from .errors import EnvironmentFailure, GeocoderError
+from .interrupts import raise_dropped_interrupt
 
 log = logging.getLogger(__name__)
 
@@ -334,6 +335,7 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     (a 100-scene mosaic's ~2,000 correspondence tasks of ~15 ms: 41.3 s with 2, 35.9 s with 8). Without a client the tasks are computed together by the current
     Dask scheduler and yielded in key order.
     """
+    raise_dropped_interrupt()
     if not tasks:
         return
     client = current_client()
@@ -370,6 +372,7 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     tasks_of = dict(items)
     try:
         for fut, value in queue:
+            raise_dropped_interrupt()
             if fut.status == "cancelled" and isinstance(value, BaseException):
                 raise value  # as_completed hands a cancelled future's error over as its result (scheduler lost)
             key, _ = running.pop(id(fut))

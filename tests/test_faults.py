@@ -332,6 +332,39 @@ def test_ctrl_c_is_one_line_and_the_rerun_resumes(tmp_path, client):
     assert sorted(os.listdir(tmp_path)) == ["b.tif", "d.tif", "o.zarr"]
 
 
+def test_ctrl_c_dropped_by_a_garbage_collector_callback_still_stops_the_job(tmp_path):
+    """Python delivers Ctrl-C as a KeyboardInterrupt in whatever the main thread runs; inside a
+    garbage collector callback or a finalizer it is printed as "Exception ignored" and dropped.
+    The Ctrl-C test above once ended so (the interrupt fell into distributed's GC callback, the job
+    ran to its end and exited 0). Here the interrupt is raised in such a callback on purpose."""
+    src = synthetic_ortho((608, 608), seed=8)
+    pair = make_pair(src, shape=(512, 512), seed=8, margin=48)
+    write_geotiff(tmp_path / "b.tif", pair.base)
+    write_geotiff(tmp_path / "d.tif", pair.distorted)
+    trigger = tmp_path / "interrupt-now"
+    script = (
+        "import gc, os, runpy, sys, threading\n"
+        "def callback(phase, info):\n"
+        f"    if threading.current_thread() is threading.main_thread() and os.path.exists({str(trigger)!r}):\n"
+        f"        os.remove({str(trigger)!r})\n"
+        "        raise KeyboardInterrupt\n"
+        "gc.callbacks.append(callback)\n"
+        "sys.argv[0] = 'geocoder'\n"
+        "runpy.run_module('geocoder.cli', run_name='__main__')\n"
+    )
+    args = [sys.executable, "-c", script, "register", "b.tif", "d.tif", "--out", "o.zarr", "--tile", 128]
+    p = subprocess.Popen(list(map(str, args)), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    wait_past_correspondence(p, tmp_path / ".o.zarr.geocoder-job")
+    trigger.touch()
+    _, err = p.communicate(timeout=240)
+    assert not trigger.exists(), "the main thread ran no garbage collection before the job ended"
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err and "Exception ignored" not in err, err
+    assert err.strip().splitlines()[-1].startswith("geocoder: error: interrupted")
+    assert not (tmp_path / "o.zarr").exists()
+    assert (tmp_path / ".o.zarr.geocoder-job").is_dir()
+
+
 def test_a_busy_zarr_thread_at_the_end_of_a_command_prints_no_traceback():
     # the Ctrl-C test above once failed on a loaded machine: zarr's exit handler waited 0.2 s for
     # its I/O thread, closed the still running loop and Python printed "Cannot close a running event
