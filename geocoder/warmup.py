@@ -79,14 +79,16 @@ def compile_kernels(*, size: int = 256, tile: int = 128, parallel: bool = True) 
 
 
 def warm_small_kernels() -> None:
-    """Run the interest operator and every resampling method once on a 32 x 32 image (compiles
-    them, or loads them from numba's cache): what a worker runs first on any job."""
+    """Run the interest operator, every resampling method and the correlation's patch sampling
+    once on a 32 x 32 image (compiles them, or loads them from numba's cache): what a worker runs
+    first on any job."""
     from .kernels.interest import detect
-    from .kernels.resample import METHODS, sample
+    from .kernels.resample import METHODS, sample, sample_affine_patches
 
     image = np.random.default_rng(0).normal(size=(32, 32)).astype(np.float32)
     for method in METHODS:
         sample(image, np.array([3.5]), np.array([4.25]), method=method)
+    sample_affine_patches(image, np.array([8.5]), np.array([9.25]), np.eye(2)[None], np.zeros((1, 2)))
     detect(image, cell=16)
 
 

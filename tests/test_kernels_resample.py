@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from geocoder.kernels.resample import METHODS, sample, sample_reference, window_for
+from geocoder.kernels.resample import METHODS, sample, sample_affine_patches, sample_reference, window_for
 
 HALF = {"nearest": 0, "bilinear": 1, "cubic": 2, "lanczos": 3}
 
@@ -192,3 +192,30 @@ def test_shapes_and_errors() -> None:
         sample(image, np.zeros(3), np.zeros(3), method="spline")
     with pytest.raises(ValueError):
         sample(image[None, None], np.zeros(3), np.zeros(3))
+
+
+def test_affine_patches_are_the_samples_of_their_positions() -> None:
+    """The correlation's patches, sampled one patch at a time, equal :func:`sample` of the (n, P)
+    positions bit for bit: inside, across nodata, past the edges, within the edge snap, NaN centres."""
+    from geocoder.kernels.correlate import patch_offsets
+
+    rng = np.random.default_rng(4)
+    image = _image((97, 131), seed=2)
+    image[40:44, 10:90] = np.nan
+    n = 600
+    x, y = _points(n, 97, 131, seed=5, margin=10.0)
+    x[:20], y[20:30] = np.round(x[:20]), np.nan  # integral centres, undefined centres
+    jac = np.eye(2)[None] + rng.normal(0.0, 0.05, (n, 2, 2))
+    jac[:40] = np.round(jac[:40])
+    offsets = patch_offsets(5)
+    # centres whose patch's top row ends a hair (< 1e-3 px) above the first pixel centre
+    y[30:40] = 5.0 * jac[30:40, 1, 1] + 5.0 * jac[30:40, 1, 0] - 4e-4
+    px = x[:, None] + jac[:, 0, 0, None] * offsets[:, 0] + jac[:, 0, 1, None] * offsets[:, 1]
+    py = y[:, None] + jac[:, 1, 0, None] * offsets[:, 0] + jac[:, 1, 1, None] * offsets[:, 1]
+    want = sample(image, px, py, method="bilinear")
+    got = sample_affine_patches(image, x, y, jac, offsets)
+    assert got.dtype == np.float32 and got.shape == (n, len(offsets))
+    assert np.array_equal(got, want, equal_nan=True)
+    assert 0.05 < np.isnan(want).mean() < 0.5, "the case covers the undefined samples"
+    with pytest.raises(ValueError, match="same patches"):
+        sample_affine_patches(image, x, y[:-1], jac, offsets)

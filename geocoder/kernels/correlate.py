@@ -19,7 +19,7 @@ import numba
 import numpy as np
 
 from .alsc import _relaxation
-from .resample import bilinear_taps, sample
+from .resample import bilinear_taps, sample, sample_affine_patches
 
 
 def patch_offsets(radius: int) -> np.ndarray:
@@ -48,10 +48,7 @@ def warped_patches(
 
     ``jac`` has shape (n, 2, 2), rows ``d(x'', y'') / d(x, y)``.
     """
-    offs = patch_offsets(radius)
-    px = np.asarray(x)[:, None] + jac[:, 0, 0, None] * offs[:, 0] + jac[:, 0, 1, None] * offs[:, 1]
-    py = np.asarray(y)[:, None] + jac[:, 1, 0, None] * offs[:, 0] + jac[:, 1, 1, None] * offs[:, 1]
-    return sample(np.asarray(image, dtype=np.float32), px, py, method="bilinear").astype(np.float64)
+    return sample_affine_patches(image, x, y, jac, patch_offsets(radius)).astype(np.float64)
 
 
 def correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -185,6 +185,56 @@ def _sample_bilinear(image, x, y, out):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
+def _sample_affine_bilinear(image, x, y, jac, offsets, out):  # pragma: no cover - compiled
+    """``out[:, i P + k]`` = the bilinear sample at ``(x_i, y_i) + jac_i @ offsets_k`` (P offsets)."""
+    npatch = offsets.shape[0]
+    px = np.empty(npatch)
+    py = np.empty(npatch)
+    for i in range(x.shape[0]):
+        for k in range(npatch):
+            # the sums in the order numpy's broadcasting of x + j00 u + j01 v takes them
+            px[k] = x[i] + jac[i, 0, 0] * offsets[k, 0] + jac[i, 0, 1] * offsets[k, 1]
+            py[k] = y[i] + jac[i, 1, 0] * offsets[k, 0] + jac[i, 1, 1] * offsets[k, 1]
+        _sample_bilinear(image, _onto_edge(px, image.shape[2]), _onto_edge(py, image.shape[1]),
+                         out[:, i * npatch : (i + 1) * npatch])
+
+
+def sample_affine_patches(image: np.ndarray, x: np.ndarray, y: np.ndarray, jac: np.ndarray,
+                          offsets: np.ndarray) -> np.ndarray:
+    """Bilinear patches at ``(x_i, y_i) + jac_i @ offsets_k``, one patch at a time.
+
+    The same values as :func:`sample` (``method="bilinear"``) of those positions, without the
+    (n, P) position arrays: a patch's positions are formed, sampled and dropped in turn.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        2-D image (sampled as float32), NaN marks nodata.
+    x, y : numpy.ndarray
+        Patch centres, shape (n,).
+    jac : numpy.ndarray
+        Shape (n, 2, 2): rows ``d(x, y) / d(u, v)`` of each patch.
+    offsets : numpy.ndarray
+        Shape (P, 2): the template offsets ``(u, v)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32, shape (n, P); NaN where :func:`sample` gives NaN.
+    """
+    image3 = np.ascontiguousarray(np.asarray(image, dtype=np.float32))[None]
+    xf = np.ascontiguousarray(x, dtype=np.float64).ravel()
+    yf = np.ascontiguousarray(y, dtype=np.float64).ravel()
+    jf = np.ascontiguousarray(jac, dtype=np.float64).reshape(-1, 2, 2)
+    of = np.ascontiguousarray(offsets, dtype=np.float64).reshape(-1, 2)
+    if not (xf.shape == yf.shape and jf.shape[0] == xf.shape[0]):
+        raise ValueError(f"x {xf.shape}, y {yf.shape} and jac {jf.shape} do not describe the same patches")
+    out = np.empty((1, xf.shape[0] * of.shape[0]), dtype=np.float32)
+    _sample_affine_bilinear(image3, xf, yf, jf, of, out)
+    return out.reshape(xf.shape[0], of.shape[0])
+
+
+@numba.njit(nogil=True, cache=True)
 def _keys_weights(f, a, w):  # pragma: no cover - compiled
     """Keys cubic weights of the taps at distances ``f + 1, f, 1 - f, 2 - f``."""
     for k in range(4):
