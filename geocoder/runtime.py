@@ -335,7 +335,7 @@ def compute_as_completed(tasks: dict[str, Any]) -> Iterator[tuple[str, Any]]:
     (a 100-scene mosaic's ~2,000 correspondence tasks of ~15 ms: 41.3 s with 2, 35.9 s with 8). Without a client the tasks are computed together by the current
     Dask scheduler and yielded in key order.
     """
-    raise_dropped_interrupt()
+    raise_dropped_interrupt()  # a Ctrl-C Python could not raise where it came (geocoder.interrupts)
     if not tasks:
         return
     client = current_client()
