@@ -66,3 +66,39 @@ def test_pass_one_stays_unrefined_only_with_many_points_in_the_overlap():
     # the same points, most of them predicted beyond a small distorted scene
     assert refine_first_pass(many, same, (1000, 1000), order=2, passes=2)
     assert refine_first_pass(many, same, (2000, 2000), order=3, passes=2)  # ten terms need more
+
+
+def test_pass_one_pairs_the_strongest_point_of_every_square_on_a_large_scene():
+    from geocoder.kernels.interest import InterestPoints
+    from geocoder.pipeline.correspond import FIRST_PASS_MARGIN, UNREFINED_POINTS_PER_TERM, first_pass_points
+
+    rng = np.random.default_rng(1)
+    n = 40_000
+    x, y = np.round(rng.uniform(0, 8192, n)), np.round(rng.uniform(0, 8192, n))
+    w = rng.integers(1, 50, n).astype(np.float64)  # ties included
+    order = np.lexsort((x, y))
+    pts = InterestPoints(x[order], y[order], w[order], np.ones(n))
+    same = fit_polymap(x, y, x, y, order=1, robust=False)
+    first = first_pass_points(pts, same, (8192, 8192), order=2, cell=64)
+    # one point per occupied square, the strongest, the first of equals; the order kept
+    square = (pts.y // 64) * 128 + pts.x // 64
+    assert len(first) == len(np.unique(square))
+    kept = np.flatnonzero(np.isin(np.stack([pts.x, pts.y], 1).view(complex).ravel(),
+                                  np.stack([first.x, first.y], 1).view(complex).ravel()))
+    for s in np.unique(square)[:300]:
+        mine = np.flatnonzero(square == s)
+        assert np.intersect1d(kept, mine).tolist() == [mine[np.argmax(pts.w[mine])]]
+    assert np.all(np.diff(first.y * 10_000 + first.x) > 0)
+    # the squares are global: a quarter of the scene gives the same choice inside it
+    quarter = (pts.x < 4096) & (pts.y < 4096)
+    part = InterestPoints(pts.x[quarter], pts.y[quarter], pts.w[quarter], pts.q[quarter])
+    mine = first_pass_points(part, same, (8192, 8192), order=1, cell=64)  # three terms: 1,500 needed
+    assert FIRST_PASS_MARGIN * UNREFINED_POINTS_PER_TERM * 3 <= len(mine) < len(part)
+    in_quarter = (first.x < 4096) & (first.y < 4096)
+    np.testing.assert_array_equal(np.stack([mine.x, mine.y]), np.stack([first.x[in_quarter], first.y[in_quarter]]))
+    tile = (pts.x >= 1024) & (pts.x < 2048) & (pts.y < 1024)
+    few = InterestPoints(pts.x[tile], pts.y[tile], pts.w[tile], pts.q[tile])
+    assert len(first_pass_points(few, same, (8192, 8192), order=2, cell=64)) == len(few), "too few squares: all"
+    # a scene whose squares give too few for the quadratic keeps every point
+    small = first_pass_points(pts, same, (8192, 8192), order=2, cell=512)
+    assert len(small) == len(pts)

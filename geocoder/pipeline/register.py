@@ -49,7 +49,7 @@ from ..status import Status
 from ..tiles import TileGrid
 from .bands import Bands
 from .coarse import overview_factor, submit_coarse_alignment
-from .correspond import fit_global, match_tiles, refine_first_pass
+from .correspond import first_pass_points, fit_global, match_tiles, refine_first_pass
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points_many
 from .job import Job, JobRun, fingerprint, input_identity
@@ -284,17 +284,19 @@ def find_tiepoints(
         # When guided passes follow, pass 1's polynomial only predicts where they refine every
         # base point, so on a scene with many points its pairs stay where the interest points
         # put them (a third of the correspondence's work; the tie points are the later passes')
-        match = partial(match_tiles, base_reader, dist_reader, grid, bpts, dpts, band=band, dist_band=dband, opts=copts, job=job)
+        match = partial(match_tiles, base_reader, dist_reader, grid, band=band, dist_band=dband, opts=copts, job=job)
 
         def too_few(found: TiePoints) -> MatchingError:
             return MatchingError(f"only {len(found)} tie points found between {base.attrs['source']} and "
                                  f"{dist.attrs['source']}")
 
         refined = refine_first_pass(bpts, predict, dist_shape, order=opts.order, passes=opts.passes)
-        found, _ = match(predict, refine=refined, stage="correspondence (pass 1)")
+        # unrefined, on a large scene pass 1 pairs the strongest base point of every 64-px square
+        first = bpts if refined else first_pass_points(bpts, predict, dist_shape, order=opts.order)
+        found, _ = match(first, dpts, predict, refine=refined, stage="correspondence (pass 1)")
         summary.pass_tiepoints.append(len(found))
         if len(found) < opts.min_tiepoints and coarse.affine:
-            found, _ = match(predict, guided=True, stage="correspondence (pass 1, guided)")
+            found, _ = match(bpts, dpts, predict, guided=True, stage="correspondence (pass 1, guided)")
             summary.pass_tiepoints.append(len(found))
             refined = True
         if len(found) < opts.min_tiepoints:
@@ -302,14 +304,14 @@ def find_tiepoints(
         tp, mapping = fit_global(found, order=opts.order)
         # later passes: every base point matched from the fitted polynomial
         for i in range(1, opts.passes):
-            found, _ = match(mapping, guided=True, stage=f"correspondence (pass {i + 1})")
+            found, _ = match(bpts, dpts, mapping, guided=True, stage=f"correspondence (pass {i + 1})")
             summary.pass_tiepoints.append(len(found))
             if len(found) < opts.min_tiepoints:
                 break
             tp, mapping = fit_global(found, order=opts.order)
             refined = True
         if not refined:  # no guided pass found enough: pass 1's pairs refined, as the tie points
-            found, _ = match(predict, stage="correspondence (pass 1, refined)")
+            found, _ = match(bpts, dpts, predict, stage="correspondence (pass 1, refined)")
             summary.pass_tiepoints.append(len(found))
             if len(found) < opts.min_tiepoints:
                 raise too_few(found)
