@@ -64,9 +64,18 @@ def _stages(job: Job, prefix: str) -> dict:
     return {k: v for k, v in job.tiles.items() if k.startswith(prefix)}
 
 
-def test_batched_points_equal_pair_by_pair_in_a_fixed_number_of_rounds(files, client, tmp_path):
+@pytest.mark.parametrize("thinned", [False, True], ids=["as-is", "pass-1-thinned"])
+def test_batched_points_equal_pair_by_pair_in_a_fixed_number_of_rounds(files, client, tmp_path, monkeypatch, thinned):
+    """``pass-1-thinned``: these small scenes made "large" (250 -> 2 points per term, 64 -> 32 px
+    squares), so pass 1 is unrefined and thinned (441 -> 192 reference points for a scene) in the
+    mosaic's batches and in find_tiepoints alike."""
     d, paths = files
     opts = RegisterOptions(tile=TILE, dense=False)
+    if thinned:
+        from geocoder.pipeline import correspond
+
+        monkeypatch.setattr(correspond, "UNREFINED_POINTS_PER_TERM", 2)
+        monkeypatch.setattr(correspond, "FIRST_PASS_CELL", 32)
     job = Job(str(tmp_path / "job"), "batched")
     images, readers = _opened(job, client, paths)
     n = len(images)
@@ -86,6 +95,11 @@ def test_batched_points_equal_pair_by_pair_in_a_fixed_number_of_rounds(files, cl
     # every scene (and the noise) against the reference: coarse, pass 1 (and its guided retry for
     # the pairs that need it), pass 2 -- one round each for all five pairs
     specs = [PairSpec(f"ref-{k}", 0, k + 1) for k in range(n - 1)]
+    if thinned:
+        from geocoder.pipeline.correspond import first_pass_points
+
+        identity = fit_polymap(points[0].x, points[0].y, points[0].x, points[0].y, order=1, robust=False)
+        assert len(first_pass_points(points[0], identity, (480, 480), order=2)) < 0.5 * len(points[0])
     control = match_pairs(job, "control", specs, images, readers, points, opts)
     rounds = ["control-coarse", "control-pass-1", "control-pass-1-guided", "control-pass-2"]
     assert set(_stages(job, "control")) <= set(rounds) and {rounds[0], rounds[1], rounds[3]} <= set(_stages(job, "control"))

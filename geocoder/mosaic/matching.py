@@ -32,7 +32,7 @@ from ..kernels.polynomial import PolyMap
 from ..match.coarse import CoarseAlignment, Hypothesis
 from ..match.tiepoints import TiePoints
 from ..pipeline.coarse import _align, georeference_prior, overview, overview_factor
-from ..pipeline.correspond import _tile_task, distorted_window, fit_global, refine_first_pass
+from ..pipeline.correspond import _tile_task, distorted_window, first_pass_points, fit_global, refine_first_pass
 from ..pipeline.detect import interest_points_many
 from ..pipeline.job import Job
 from ..pipeline.register import RegisterOptions, _check_overlap
@@ -67,6 +67,7 @@ class _Pair:
     mapping: PolyMap | None = None
     error: GeocoderError | None = None
     refined: bool = False  # its tie points refined by least squares (pass 1's pairs are not, when passes follow)
+    first: InterestPoints | None = None  # the base points pass 1 pairs (thinned when unrefined on a large overlap)
 
 
 def scene_points(job: Job, names: list[str], images: list[xr.DataArray], readers: list[WindowReader],
@@ -228,14 +229,14 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
         p.coarse = value
         grids[p.spec.base] = TileGrid.from_chunks(base.data.chunks[1:])
 
-    def round_(label: str, todo: list[_Pair], predicts: list[PolyMap], guided: bool, refine: list[bool] | None = None
-               ) -> list[TiePoints]:
+    def round_(label: str, todo: list[_Pair], predicts: list[PolyMap], guided: bool, refine: list[bool] | None = None,
+               first: bool = False) -> list[TiePoints]:
         """One correspondence pass of ``todo`` as one stage (pass 1's pairs refined per ``refine``,
-        default all); the tie points gathered per pair."""
+        default all; ``first``: each pair's pass-1 base points); the tie points gathered per pair."""
         tasks, mine = {}, []
         for p, predict, r in zip(todo, predicts, refine or [True] * len(todo)):
             t = _pair_tasks(p, grids[p.spec.base], readers[p.spec.base], readers[p.spec.dist],
-                            points[p.spec.base], points[p.spec.dist], predict, opts, guided, r)
+                            p.first if first else points[p.spec.base], points[p.spec.dist], predict, opts, guided, r)
             mine.append(list(t))
             tasks.update(t)
         done = job.run_tiles(f"{stage}-{label}", tasks, phase=f"correspondence {label} ({stage}, {len(todo)} pairs)")
@@ -252,14 +253,16 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
     # guided from it instead; guided at once from a placement
     found: dict[int, TiePoints] = {}
     for p in live:
-        dist = images[p.spec.dist]
-        p.refined = p.spec.placed or refine_first_pass(points[p.spec.base], p.coarse.mapping,
-                                                       (dist.sizes["y"], dist.sizes["x"]), order=opts.order,
-                                                       passes=opts.passes)
+        dist_shape = (images[p.spec.dist].sizes["y"], images[p.spec.dist].sizes["x"])
+        p.refined = p.spec.placed or refine_first_pass(points[p.spec.base], p.coarse.mapping, dist_shape,
+                                                       order=opts.order, passes=opts.passes)
+        p.first = points[p.spec.base] if p.refined else first_pass_points(points[p.spec.base], p.coarse.mapping,
+                                                                          dist_shape, order=opts.order)
     for guided, todo in ((False, [p for p in live if not p.spec.placed]), (True, [p for p in live if p.spec.placed])):
         if todo:
             found.update(zip(map(id, todo), round_("pass-1-placed" if guided else "pass-1", todo,
-                                                   [p.coarse.mapping for p in todo], guided, [p.refined for p in todo])))
+                                                   [p.coarse.mapping for p in todo], guided, [p.refined for p in todo],
+                                                   first=True)))
     retry = [p for p in live if len(found[id(p)]) < opts.min_tiepoints and p.coarse.affine]
     if retry:
         found.update(zip(map(id, retry), round_("pass-1-guided", retry, [p.coarse.mapping for p in retry], True)))
