@@ -109,3 +109,27 @@ def test_one_pass_tiles_equal_whole_image_synthetic(chunks):
     np.testing.assert_array_equal(tiled.x, ref.x)
     np.testing.assert_array_equal(tiled.y, ref.y)
     np.testing.assert_allclose(tiled.w, ref.w, rtol=1e-6)
+
+
+def test_local_maxima_against_the_nine_neighbours():
+    """Candidates of the non-maximum suppression: above 0 and beaten by none of the 8 neighbours
+    (ties kept, NaN never beats, outside the block ignored), in raster order, on any sub-block."""
+    from geocoder.kernels.interest import _local_maxima
+
+    rng = np.random.default_rng(7)
+    w = rng.integers(0, 6, (61, 47)).astype(np.float32)  # small integers: many plateaus and ties
+    w[rng.random(w.shape) < 0.05] = np.nan
+    w[0, :4] = np.nan
+    padded = np.pad(w, 1, constant_values=-np.inf)
+    beaten = np.zeros(w.shape, bool)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            beaten |= padded[1 + dr : 1 + dr + w.shape[0], 1 + dc : 1 + dc + w.shape[1]] > w
+    want = (w > 0) & ~beaten
+    for r0, r1, c0, c1 in [(0, 61, 0, 47), (3, 58, 5, 40), (0, 1, 0, 47), (60, 61, 46, 47)]:
+        rows, cols = _local_maxima(w, r0, r1, c0, c1)
+        sub = np.zeros(w.shape, bool)
+        sub[r0:r1, c0:c1] = want[r0:r1, c0:c1]
+        wr, wc = np.nonzero(sub)
+        np.testing.assert_array_equal(rows, wr)
+        np.testing.assert_array_equal(cols, wc)

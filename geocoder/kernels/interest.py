@@ -246,6 +246,17 @@ def _local_maxima(w, r0, r1, c0, c1):
     """Pixels of ``w[r0:r1, c0:c1]`` (raster order, block coordinates) above 0 and at least as
     large as each of their 8 neighbours (outside the block counts as 0)."""
     h, wd = w.shape
+    # the 3 x 3 maximum in two passes (along the rows, then across them); NaN never wins, as a
+    # NaN neighbour never beats a pixel
+    ra, rb = max(r0 - 1, 0), min(r1 + 1, h)
+    along = np.empty((rb - ra, c1 - c0))
+    for r in range(ra, rb):
+        for c in range(c0, c1):
+            m = -np.inf
+            for cc in range(max(c - 1, 0), min(c + 2, wd)):
+                if w[r, cc] > m:
+                    m = w[r, cc]
+            along[r - ra, c - c0] = m
     rows = np.empty((r1 - r0) * (c1 - c0), np.int64)
     cols = np.empty_like(rows)
     n = 0
@@ -254,12 +265,11 @@ def _local_maxima(w, r0, r1, c0, c1):
             v = w[r, c]
             if not v > 0:
                 continue
-            top = True
+            m = along[r - ra, c - c0]
             for rr in range(max(r - 1, 0), min(r + 2, h)):
-                for cc in range(max(c - 1, 0), min(c + 2, wd)):
-                    if w[rr, cc] > v:
-                        top = False
-            if top:
+                if along[rr - ra, c - c0] > m:
+                    m = along[rr - ra, c - c0]
+            if not m > v:
                 rows[n] = r
                 cols[n] = c
                 n += 1
