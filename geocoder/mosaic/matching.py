@@ -248,9 +248,10 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
 
     live = [p for p in pairs if p.error is None]
     # pass 1: pairs of interest points (seed 000 sec. 4.4) from the coarse prediction, left
-    # unrefined on a pair with many points when guided passes follow (refine_first_pass, as in
-    # find_tiepoints); where that finds too few but the coarse alignment is a full affine,
-    # guided from it instead; guided at once from a placement
+    # unrefined on a pair with many points when guided passes follow, and thinned on a large
+    # overlap (refine_first_pass, first_pass_points, as in find_tiepoints); where that finds too
+    # few but the coarse alignment is a full affine, guided from it instead; guided at once from
+    # a placement
     found: dict[int, TiePoints] = {}
     for p in live:
         dist_shape = (images[p.spec.dist].sizes["y"], images[p.spec.dist].sizes["x"])
