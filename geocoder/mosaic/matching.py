@@ -32,7 +32,7 @@ from ..kernels.polynomial import PolyMap
 from ..match.coarse import CoarseAlignment, Hypothesis
 from ..match.tiepoints import TiePoints
 from ..pipeline.coarse import _align, georeference_prior, overview, overview_factor
-from ..pipeline.correspond import _tile_task, distorted_window, first_pass_points, fit_global, refine_first_pass
+from ..pipeline.correspond import _tile_task, distorted_window, first_pass, fit_global
 from ..pipeline.detect import interest_points_many
 from ..pipeline.job import Job
 from ..pipeline.register import RegisterOptions, _check_overlap
@@ -249,16 +249,14 @@ def match_pairs(job: Job, stage: str, specs: list[PairSpec], images: list[xr.Dat
     live = [p for p in pairs if p.error is None]
     # pass 1: pairs of interest points (seed 000 sec. 4.4) from the coarse prediction, left
     # unrefined on a pair with many points when guided passes follow, and thinned on a large
-    # overlap (refine_first_pass, first_pass_points, as in find_tiepoints); where that finds too
+    # overlap (pipeline.correspond.first_pass, as in find_tiepoints); where that finds too
     # few but the coarse alignment is a full affine, guided from it instead; guided at once from
     # a placement
     found: dict[int, TiePoints] = {}
     for p in live:
         dist_shape = (images[p.spec.dist].sizes["y"], images[p.spec.dist].sizes["x"])
-        p.refined = p.spec.placed or refine_first_pass(points[p.spec.base], p.coarse.mapping, dist_shape,
-                                                       order=opts.order, passes=opts.passes)
-        p.first = points[p.spec.base] if p.refined else first_pass_points(points[p.spec.base], p.coarse.mapping,
-                                                                          dist_shape, order=opts.order)
+        p.first, p.refined = (points[p.spec.base], True) if p.spec.placed else first_pass(
+            points[p.spec.base], p.coarse.mapping, dist_shape, order=opts.order, passes=opts.passes)
     for guided, todo in ((False, [p for p in live if not p.spec.placed]), (True, [p for p in live if p.spec.placed])):
         if todo:
             found.update(zip(map(id, todo), round_("pass-1-placed" if guided else "pass-1", todo,

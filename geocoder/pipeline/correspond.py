@@ -178,6 +178,16 @@ def first_pass_points(points: InterestPoints, predict: PolyMap, dist_shape: tupl
     return thinned if _inside(thinned, predict, dist_shape) >= need else points
 
 
+def first_pass(points: InterestPoints, predict: PolyMap, dist_shape: tuple[int, int], *, order: int,
+               passes: int) -> tuple[InterestPoints, bool]:
+    """The base points correspondence pass 1 pairs, and whether it refines its pairs:
+    :func:`refine_first_pass`, and :func:`first_pass_points` where it does not (the one decision
+    of :func:`geocoder.pipeline.register.find_tiepoints` and the mosaic's pairs)."""
+    if refine_first_pass(points, predict, dist_shape, order=order, passes=passes):
+        return points, True
+    return first_pass_points(points, predict, dist_shape, order=order), False
+
+
 def fit_global(tiepoints: TiePoints, *, order: int = 2) -> tuple[TiePoints, PolyMap]:
     """Robust global polynomial base -> distorted over all tie points (eq 20b then 22b)."""
     mapping = fit_polymap(tiepoints.base_x, tiepoints.base_y, tiepoints.dist_x, tiepoints.dist_y, order=order)

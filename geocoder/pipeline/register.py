@@ -49,7 +49,7 @@ from ..status import Status
 from ..tiles import TileGrid
 from .bands import Bands
 from .coarse import overview_factor, submit_coarse_alignment
-from .correspond import first_pass_points, fit_global, match_tiles, refine_first_pass
+from .correspond import first_pass, fit_global, match_tiles
 from .dense import DenseOptions, dense_field, grow_tiles, seeds_from_tiepoints
 from .detect import InterestOptions, interest_points_many
 from .job import Job, JobRun, fingerprint, input_identity
@@ -290,9 +290,8 @@ def find_tiepoints(
             return MatchingError(f"only {len(found)} tie points found between {base.attrs['source']} and "
                                  f"{dist.attrs['source']}")
 
-        refined = refine_first_pass(bpts, predict, dist_shape, order=opts.order, passes=opts.passes)
         # unrefined, on a large scene pass 1 pairs the strongest base point of every 64-px square
-        first = bpts if refined else first_pass_points(bpts, predict, dist_shape, order=opts.order)
+        first, refined = first_pass(bpts, predict, dist_shape, order=opts.order, passes=opts.passes)
         found, _ = match(first, dpts, predict, refine=refined, stage="correspondence (pass 1)")
         summary.pass_tiepoints.append(len(found))
         if len(found) < opts.min_tiepoints and coarse.affine:
