@@ -36,3 +36,25 @@ def test_a_common_mean_is_a_column_of_ones():
     post, post_var = shrink(values, var, np.ones((4, 1)))
     np.testing.assert_allclose(post, np.mean(values))
     np.testing.assert_allclose(post_var, 0.25)  # the mean of four, each of variance 1
+
+
+def test_a_spread_must_pass_its_test_to_be_taken():
+    # estimates that share a trend and differ only by their noise: the moment estimate of their
+    # spread, floored at 0, is positive on about half of such sets; with z = 2 (correlation
+    # counted) on a few in a hundred. A real spread of one noise passes every time.
+    n = 400
+    v = np.linspace(-1, 1, n)
+    design = np.stack([np.ones(n), v, v * v], axis=1)
+    var = np.full(n, 1e-4)
+    trend = 0.3 - 0.2 * v
+    spurious = {0.0: 0, 2.0: 0}
+    for seed in range(200):
+        rng = np.random.default_rng(seed)
+        # neighbours share their errors over 5 estimates (a moving sum of white noise)
+        errors = np.convolve(rng.standard_normal(n + 4), np.ones(5), mode="valid") / np.sqrt(5)
+        values = trend + 0.01 * errors
+        for z in spurious:
+            spurious[z] += random_effects(values, var, design, significance=z, correlation=5)[2] > 0
+        real = trend + 0.01 * rng.standard_normal(n) + 0.01 * errors
+        assert random_effects(real, var, design, significance=2.0, correlation=5)[2] > 0
+    assert spurious[0.0] > 60 and spurious[2.0] <= 10, spurious

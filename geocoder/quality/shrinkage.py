@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 
-def random_effects(values: np.ndarray, var: np.ndarray, design: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def random_effects(values: np.ndarray, var: np.ndarray, design: np.ndarray, *, significance: float = 0.0,
+                   correlation: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
     """The trend ``design @ beta`` of ``values`` and their spread about it beyond their noise.
 
     Parameters
@@ -23,6 +24,16 @@ def random_effects(values: np.ndarray, var: np.ndarray, design: np.ndarray) -> t
         The estimates and their variances (> 0).
     design : ndarray (n, q)
         The trend's regressors (a column of ones: a common mean).
+    significance : float
+        ``z``: a spread is only taken when the weighted squares of the residuals, ``Q``, exceed
+        their expectation without one, ``n - q``, by more than ``z`` times their standard
+        deviation, ``sqrt(2 (n - q) correlation)``; 0: whenever they exceed it. Floored at 0,
+        the moment estimate is positive by chance on about half of the sets that have no
+        spread, and every estimate then keeps a share of its noise that its variance counts
+        as signal.
+    correlation : float
+        How many neighbouring estimates share one's error (their residuals' squares scatter
+        that many times more than independent ones').
 
     Returns
     -------
@@ -40,7 +51,9 @@ def random_effects(values: np.ndarray, var: np.ndarray, design: np.ndarray) -> t
     inv = np.linalg.inv(x.T @ (w[:, None] * x))
     resid = y - x @ (inv @ (x.T @ (w * y)))
     scale = np.sum(w) - np.trace(inv @ (x.T @ ((w * w)[:, None] * x)))
-    tau2 = max((np.sum(w * resid * resid) - (n - q)) / max(scale, 1e-300), 0.0)
+    excess = np.sum(w * resid * resid) - (n - q)
+    significant = excess > significance * np.sqrt(2.0 * max(n - q, 0) * correlation)
+    tau2 = max(excess / max(scale, 1e-300), 0.0) if significant else 0.0
     w = 1.0 / (v + tau2)
     inv = np.linalg.inv(x.T @ (w[:, None] * x))
     trend = x @ (inv @ (x.T @ (w * y)))
