@@ -13,6 +13,7 @@ import shutil
 import warnings
 from pathlib import Path
 
+import dask
 import numpy as np
 import pytest
 import rasterio
@@ -27,6 +28,7 @@ from geocoder.conventions import georeference, pixel_centres, pixel_grid, status
 from geocoder.multiscales import (
     COUNTS_GROUP,
     _halve_mean,
+    _level_tasks,
     _Levels,
     level_shapes,
     write_overviews,
@@ -250,40 +252,29 @@ def test_dtype_fill_value_chunks_and_attributes_kept(store):
                 assert var.attrs["cell_methods"] == "y: x: mean"
 
 
-def test_one_task_per_output_chunk(store):
-    """Each output chunk is computed from one input block of at most 2 x 2 stored chunks."""
+def test_one_task_per_output_chunk_and_variable(store):
+    """A level's chunk of a variable is one task, which takes only the (at most 2 x 2) tasks of
+    the chunks below it: the graph of all levels is exactly one key per output chunk."""
     root = xr.open_zarr(store["path"], decode_coords="all", consolidated=False)
     levels = _Levels(str(store["path"]), ["height", "image", "status"], root)
-    level, counts = levels.dataset(1)  # from the root
-    below = levels._open(None, "height").data
-    assert max(below.chunks[-2]) == 2 * CHUNK and max(below.chunks[-1]) == 2 * CHUNK
-    for name in ("height", "status"):
-        out = level[name].data
-        assert out.numblocks == below.numblocks
-        assert max(out.chunks[-2]) == CHUNK and max(out.chunks[-1]) == CHUNK
-        # a few tasks per chunk (read, reduce, select, cast), not one per pixel or per row
-        assert len(dict(out.__dask_graph__())) <= 6 * out.npartitions
-    assert counts["height"].dtype == np.uint8 and set(counts) == {"height", "image"}  # averages only
-    # level 2 from level 1 as computed: its input blocks are 2 x 2 of level 1's chunks
-    level2, _ = levels.dataset(2, level, counts)
-    for name in ("height", "status"):
-        assert level2[name].shape[-2:] == tuple((n + 1) // 2 for n in level[name].shape[-2:])
-        assert max(level2[name].data.chunks[-1]) == CHUNK
-
-
-def test_a_level_s_tasks_share_no_input(store):
-    """Every task of a level reads its own block (the reader inline in the task, not one shared
-    input that would draw all the level's tasks to the worker holding it), with keys that do
-    not change between two openings of the same store."""
-    root = xr.open_zarr(store["path"], decode_coords="all", consolidated=False)
-    levels = _Levels(str(store["path"]), ["height", "image", "status"], root)
-    for name in ("height", "image", "status"):
-        below = levels._open(None, name).data
-        graph = dict(below.__dask_graph__())
-        assert len(graph) == below.npartitions  # one task per block, no shared 'original' key
-        again = _Levels(str(store["path"]), ["height", "image", "status"], root)._open(None, name).data
-        assert again.name == below.name
-        np.testing.assert_array_equal(below.compute(), root[name].values)
+    shapes = level_shapes(SHAPE, CHUNK)
+    specs = levels.specs(shapes)
+    assert [s.name for s in specs] == ["height", "image", "status"]
+    for spec in specs:
+        tasks = _level_tasks(spec)
+        for k, (h, w) in enumerate(shapes, start=1):
+            assert sorted((iy, ix) for (kk, iy, ix) in tasks if kk == k) == [
+                (iy, ix) for iy in range(-(-h // CHUNK)) for ix in range(-(-w // CHUNK))]
+        last = [t for (k, _, _), t in tasks.items() if k == len(shapes)]
+        graph = {k: v for task in last for k, v in dict(task.__dask_graph__()).items()}
+        assert set(graph) == {t.key for t in tasks.values()}  # no reader, no getitem, no cast of its own
+        for (k, iy, ix), task in tasks.items():
+            below = {tasks[(k - 1, 2 * iy + a, 2 * ix + b)].key for a in (0, 1) for b in (0, 1)
+                     if (k - 1, 2 * iy + a, 2 * ix + b) in tasks}
+            assert dask.core.get_dependencies(graph, task.key) == below  # the first level's: none (spread)
+        # the same keys from a second opening of the store: a rerun's tasks are the same tasks
+        again = _level_tasks(_Levels(str(store["path"]), [spec.name], root).specs(shapes)[0])
+        assert {k: t.key for k, t in again.items()} == {k: t.key for k, t in tasks.items()}
 
 
 def test_pixel_grid_store_and_rerun(truth, tmp_path, client):
