@@ -149,9 +149,10 @@ class _Spec:
     averaged: bool  # the mean of the valid pixels (else the top-left pixel)
     chunk: tuple[int, int]  # (rows, cols) of a chunk, the same at every level
     shapes: tuple[tuple[int, int], ...]  # (rows, cols) of the root, then of every level
+    written: str  # when the root's variable was written (:func:`geocoder.storage.identity`), for the task keys
 
     def __dask_tokenize__(self) -> tuple:
-        return (self.store, self.name, self.averaged, self.chunk, self.shapes)
+        return (self.store, self.name, self.averaged, self.chunk, self.shapes, self.written)
 
 
 def _level_chunk(spec: _Spec, k: int, iy: int, ix: int, *below: tuple | None) -> tuple | None:
@@ -271,7 +272,8 @@ class _Levels:
         return [_Spec(store=self.store, name=n, source=source[n].variable,
                       encoding=_encoding(self.root[n], self.chunks[n], self.root[n].shape),
                       averaged=self.methods[n] == "average", chunk=tuple(self.chunks[n][-2:]),
-                      shapes=((self.root.sizes["y"], self.root.sizes["x"]), *shapes)) for n in self.names]
+                      shapes=((self.root.sizes["y"], self.root.sizes["x"]), *shapes),
+                      written=repr(sorted(storage.identity(storage.join(self.store, n)).items()))) for n in self.names]
 
     def template(self, k: int, shape: tuple[int, int]) -> xr.Dataset:
         """Level ``k`` (of ``shape``) as an empty dataset: what its store holds but the values
