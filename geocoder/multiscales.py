@@ -64,7 +64,7 @@ from dask.delayed import Delayed
 from . import progress, storage
 from .conventions import GRID_MAPPING, _declare, _on_grid, georeference, pixel_centres
 
-__all__ = ["MULTISCALES_CONVENTION", "level_shapes", "write_overviews"]
+__all__ = ["MULTISCALES_CONVENTION", "OverviewPlan", "level_shapes", "plan_overviews", "write_overviews"]
 
 #: Declaration of the ``multiscales`` Zarr convention (zarr-conventions/multiscales, v1).
 MULTISCALES_CONVENTION = {
@@ -343,7 +343,8 @@ def write_overviews(
     Level ``k`` (child group ``str(k)``) halves level ``k - 1`` on each side (rounded up),
     starting from the root (level 0, not changed); floating-point variables take the mean of
     the valid full-resolution pixels, integer ones the nearest (top-left) pixel. See the
-    module documentation for the layout and the conventions.
+    module documentation for the layout and the conventions. The same as
+    ``plan_overviews(store, variables=..., min_size=...).compute(client)``.
 
     Parameters
     ----------
@@ -372,8 +373,62 @@ def write_overviews(
         If ``store`` is not a Zarr store, a requested variable is not on the ``(y, x)``
         grid, or ``min_size`` is below 1.
     """
-    import zarr
+    return plan_overviews(store, variables=variables, min_size=min_size).compute(client)
 
+
+@dataclass
+class OverviewPlan:
+    """The overview levels of a store, their metadata written, their values still to compute
+    (:func:`plan_overviews`)."""
+
+    store: str
+    levels: _Levels | None  # None: nothing to level
+    shapes: list[tuple[int, int]]
+
+    def compute(self, client=None) -> list[int]:
+        """Compute and write the levels' values, then the root's ``multiscales`` attribute
+        (last: a store with the attribute has all its levels).
+
+        Returns the levels written (as :func:`write_overviews`).
+        """
+        import zarr
+
+        if self.levels is None or not self.shapes:
+            return []
+        levels, shapes, store = self.levels, self.shapes, self.store
+        cy, cx = levels.chunks[levels.names[0]][-2:]
+        tiles = sum(-(-h // cy) * -(-w // cx) for h, w in shapes)  # the progress counts each level's output chunks
+        # one task per output chunk and variable; the last level's depend on every other
+        last = [t for spec in levels.specs(shapes) for (k, _, _), t in _level_tasks(spec).items() if k == len(shapes)]
+        bar = progress.current()
+        bar.phase("overview levels", tiles)
+        try:
+            dask.compute(*last, **({"scheduler": client} if client is not None else {}))
+            bar.advance(tiles)
+        finally:
+            bar.close()
+            storage.remove(storage.join(store, COUNTS_GROUP))  # left by an earlier version
+
+        group = zarr.open_group(store, mode="r+", zarr_format=3)
+        attrs = group.attrs.asdict()
+        _declare(attrs, MULTISCALES_CONVENTION)
+        group.attrs.update({"zarr_conventions": attrs["zarr_conventions"], "multiscales": levels.layout(shapes)})
+        return list(range(1, len(shapes) + 1))
+
+
+def plan_overviews(
+    store: str | os.PathLike,
+    *,
+    variables: list[str] | tuple[str, ...] | None = None,
+    min_size: int | None = None,
+) -> OverviewPlan:
+    """The first half of :func:`write_overviews` (same parameters and errors): the levels'
+    groups, metadata and coordinates written, nothing computed.
+
+    It needs the root's metadata only, not its values, so a writer may call it while the
+    root's chunks are still being written (``register`` does, from a thread, while its
+    output tiles compute) and call :meth:`OverviewPlan.compute` once they are all written.
+    """
     store = storage.normalize(store)
     if not storage.is_store(store):
         raise ValueError(f"{store}: is not a Zarr store")
@@ -387,31 +442,11 @@ def write_overviews(
         if off:
             raise ValueError(f"{store}: not variables on the (y, x) grid: {', '.join(off)}; those are: {', '.join(sorted(grid))}")
     if not names:
-        return []
+        return OverviewPlan(store, None, [])
     levels = _Levels(store, names, root)
     if min_size is None:
         min_size = max(max(levels.chunks[n][-2:]) for n in names)
     shapes = level_shapes((root.sizes["y"], root.sizes["x"]), min_size)
-    if not shapes:
-        return []
-
-    cy, cx = levels.chunks[names[0]][-2:]
-    tiles = [-(-h // cy) * -(-w // cx) for h, w in shapes]  # the progress counts each level's output chunks
-    bar = progress.current()
-    bar.phase("overview levels", sum(tiles))
-    for k, shape in enumerate(shapes, start=1):  # metadata and coordinates; the values below
+    for k, shape in enumerate(shapes, start=1):  # metadata and coordinates; the values in compute()
         levels.template(k, shape).to_zarr(store, group=str(k), mode="w", zarr_format=3, consolidated=False, compute=False)
-    # one task per output chunk and variable; the last level's depend on every other
-    last = [t for spec in levels.specs(shapes) for (k, _, _), t in _level_tasks(spec).items() if k == len(shapes)]
-    try:
-        dask.compute(*last, **({"scheduler": client} if client is not None else {}))
-        bar.advance(sum(tiles))
-    finally:
-        bar.close()
-        storage.remove(storage.join(store, COUNTS_GROUP))  # left by an earlier version
-
-    group = zarr.open_group(store, mode="r+", zarr_format=3)
-    attrs = group.attrs.asdict()
-    _declare(attrs, MULTISCALES_CONVENTION)
-    group.attrs.update({"zarr_conventions": attrs["zarr_conventions"], "multiscales": levels.layout(shapes)})
-    return list(range(1, len(shapes) + 1))
+    return OverviewPlan(store, levels, shapes)

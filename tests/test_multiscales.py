@@ -31,6 +31,7 @@ from geocoder.multiscales import (
     _level_tasks,
     _Levels,
     level_shapes,
+    plan_overviews,
     write_overviews,
 )
 
@@ -297,6 +298,24 @@ def test_pixel_grid_store_and_rerun(truth, tmp_path, client):
     small = tmp_path / "small.zarr"
     shutil.copytree(path, small)
     assert write_overviews(small, min_size=300) == []  # fits already: nothing written
+
+
+def test_planned_before_the_root_is_written(store, truth, tmp_path, client):
+    """The levels planned on a store whose root holds metadata only (as register plans them while
+    its tiles are written), computed once the values are in: the same store as write_overviews'."""
+    ds = georeference(_dataset(truth), CRS, TRANSFORM)
+    path = tmp_path / "planned.zarr"
+    ds.status.encoding["fill_value"] = np.uint8(255)
+    ds.to_zarr(path, mode="w", zarr_format=3, consolidated=False, compute=False)
+    assert not (path / "image" / "c").exists()  # the root: metadata only
+    plan = plan_overviews(path)
+    assert (path / "1" / "image" / "zarr.json").exists() and not (path / "1" / "image" / "c").exists()
+    ds.to_zarr(path, mode="r+", zarr_format=3, consolidated=False)  # the values, after the plan
+    assert plan.compute(client) == store["levels"]
+    for k in store["levels"]:
+        xr.testing.assert_identical(_level(store, k).load(), xr.open_zarr(path, group=str(k), consolidated=False).load())
+    assert zarr.open_group(path, mode="r").attrs["multiscales"] == zarr.open_group(store["path"], mode="r").attrs["multiscales"]
+    assert plan_overviews(path, min_size=300).compute(client) == []  # fits already: nothing to do
 
 
 # ------------------------------------------------------------------------------ writers

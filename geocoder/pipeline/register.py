@@ -18,6 +18,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from typing import Any
@@ -37,7 +38,7 @@ from ..kernels.polynomial import PolyMap, exponents
 from ..match.coarse import CoarseAlignment
 from ..match.correspondence import CorrespondenceOptions
 from ..match.tiepoints import TiePoints
-from ..multiscales import write_overviews
+from ..multiscales import OverviewPlan, plan_overviews
 from ..options import default_tile, get_option
 from ..outputs import check_output, commit_output, product_attrs
 from ..progress import Progress
@@ -448,7 +449,7 @@ def register(
             dask_client(client, scheduler) as c:
         run.connected = c.scheduler.address
         progress.current().message(f"Dask dashboard: {c.dashboard_link}")
-        ds, counts, tp = _run(job, bscene, dscene, opts, summary, timer, c, in_memory=out is None)
+        ds, counts, tp, overviews = _run(job, bscene, dscene, opts, summary, timer, c, in_memory=out is None)
         summary.status_counts = {Status(i).name.lower(): int(n) for i, n in enumerate(counts) if n}
         if out is None:
             summary.job = job.report()
@@ -457,16 +458,17 @@ def register(
             return ds
         store = job.file("output.zarr")
         with timer("overview levels"):
-            write_overviews(store, client=c)  # in the store before it is committed
+            overviews.compute(client=c)  # in the store before it is committed
         summary.job = job.report()
-        _tiepoint_dataset(tp).to_zarr(store, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
         storage.open_group(store, mode="r+").attrs["summary"] = json.dumps(asdict(summary))
         commit_output(store, out, overwrite=overwrite)
     return xr.open_zarr(out, decode_coords="all", consolidated=False)
 
 
 def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSummary, timer, c, *, in_memory: bool):
-    """The stages of :func:`register` inside a job; the dataset, its status counts and the tie points."""
+    """The stages of :func:`register` inside a job: the dataset, its status counts, the tie
+    points and, written to the job's output store, its overview levels still to compute (the tie
+    points are in the store then; None in memory)."""
     band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
     factor = overview_factor(bscene, dscene)
 
@@ -532,8 +534,21 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
                 ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False,
                           encoding=storage.encoding(ds))
                 job.save("output-created")
-            counts = write_tiles(ds, store, grid, job)
-    return ds, counts, tp
+            # the store's other metadata (tie points, the overview levels' groups) is written by
+            # the client while the workers compute the tiles, not after them with the workers idle
+            with ThreadPoolExecutor(1, thread_name_prefix="geocoder-metadata") as pool:
+                metadata = pool.submit(_output_metadata, store, tp)
+                counts = write_tiles(ds, store, grid, job)
+                overviews = metadata.result()
+            return ds, counts, tp, overviews
+    return ds, counts, tp, None
+
+
+def _output_metadata(store: str, tp: TiePoints) -> OverviewPlan:
+    """The tie points into the output ``store`` (group ``tiepoints``), and its overview levels
+    planned (their groups written, :func:`geocoder.multiscales.plan_overviews`)."""
+    _tiepoint_dataset(tp).to_zarr(store, group="tiepoints", mode="w", zarr_format=3, consolidated=False)
+    return plan_overviews(store)
 
 
 #: Smallest image side geocoder registers (interest windows, patches and pyramids need room).
