@@ -116,6 +116,25 @@ class TileGrid:
     def __len__(self) -> int:
         return len(self.rows) * len(self.cols)
 
+    def route(self, x: np.ndarray, y: np.ndarray) -> dict[str, np.ndarray]:
+        """The points whose nearest pixel lies in each tile's core (:meth:`Tile.contains`), in
+        one pass over the points instead of one per tile.
+
+        Returns
+        -------
+        dict
+            Tile key -> indices of its points, ascending (tiles without points left out).
+        """
+        xi, yi = np.rint(np.asarray(x, np.float64)), np.rint(np.asarray(y, np.float64))
+        nrows, ncols = len(self.rows), len(self.cols)
+        iy = np.searchsorted(np.r_[0, np.cumsum(self.rows)], yi, side="right") - 1
+        ix = np.searchsorted(np.r_[0, np.cumsum(self.cols)], xi, side="right") - 1
+        # NaN, and every point past the last edge, lands on index nrows (ncols): outside
+        flat = np.where((iy >= 0) & (iy < nrows) & (ix >= 0) & (ix < ncols), iy * ncols + ix, -1)
+        order = np.argsort(flat, kind="stable")  # the outside first, then tile by tile, each ascending
+        ends = np.cumsum(np.bincount(flat + 1, minlength=nrows * ncols + 1))
+        return {t.key: order[ends[k]:ends[k + 1]] for k, t in enumerate(self) if ends[k + 1] > ends[k]}
+
     def overlapped_origin(self, iy: int, ix: int, depth: int) -> tuple[int, int, tuple[int, int, int, int]]:
         """Where block (iy, ix) of ``dask.array.overlap(..., depth, boundary='none')`` starts.
 
@@ -127,3 +146,21 @@ class TileGrid:
         top = depth if iy > 0 else 0
         left = depth if ix > 0 else 0
         return r0 - top, c0 - left, (top, top + self.rows[iy], left, left + self.cols[ix])
+
+
+class PointsByRow:
+    """Points sorted by row once, for the points inside many windows (:meth:`in_window`)."""
+
+    def __init__(self, x: np.ndarray, y: np.ndarray) -> None:
+        self.x = np.asarray(x)
+        self.order = np.argsort(np.asarray(y), kind="stable")
+        self.rows = np.asarray(y)[self.order]
+
+    def in_window(self, window: Window) -> np.ndarray:
+        """Indices (ascending) of the points with ``row0 <= y < row1`` and ``col0 <= x < col1``:
+        those of that mask, from the rows in the window only."""
+        r0, r1, c0, c1 = window
+        a, b = np.searchsorted(self.rows, [r0, r1], side="left")
+        candidates = self.order[a:b]
+        x = self.x[candidates]
+        return np.sort(candidates[(x >= c0) & (x < c1)])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geocoder.tiles import TileGrid, Window
+from geocoder.tiles import PointsByRow, TileGrid, Window
 
 
 def test_window_grow_clip_slices():
@@ -36,3 +36,23 @@ def test_tile_windows_cover_the_grid_once():
         assert tile.window(8).clip(300, 500) == Window(max(tile.row0 - 8, 0), min(tile.row1 + 8, 300),
                                                       max(tile.col0 - 8, 0), min(tile.col1 + 8, 500))
     assert (cover == 1).all()
+
+
+def test_route_and_windows_equal_the_per_tile_masks():
+    """TileGrid.route and PointsByRow.in_window select what Tile.contains and a window's mask
+    select, in the same order: points on tile edges, on the scene's edges, outside it and NaN."""
+    rng = np.random.default_rng(5)
+    grid = TileGrid.regular(300, 250, 64, min_last=20)
+    x = np.r_[rng.uniform(-20, 270, 2000), [0.0, -0.5, -0.51, 63.5, 64.49, 249.49, 249.5, np.nan, 10.0]]
+    y = np.r_[rng.uniform(-20, 320, 2000), [0.0, 0.0, 0.0, 10.0, 64.0, 299.0, 299.49, 5.0, np.nan]]
+    routed = grid.route(x, y)
+    for tile in grid:
+        want = np.flatnonzero(tile.contains(x, y))
+        assert np.array_equal(routed.get(tile.key, np.empty(0, int)), want), tile
+    assert sum(len(i) for i in routed.values()) == sum(tile.contains(x, y).sum() for tile in grid)
+    rows = PointsByRow(x, y)
+    for window in (Window(0, 64, 0, 64), Window(-30, 10, 200, 400), Window(63, 65, 60, 70), Window(5, 5, 0, 9),
+                   Window(299, 400, -1, 250)):
+        r0, r1, c0, c1 = window
+        want = np.flatnonzero((y >= r0) & (y < r1) & (x >= c0) & (x < c1))
+        assert np.array_equal(rows.in_window(window), want), window

@@ -32,13 +32,13 @@ from ..kernels.polynomial import PolyMap
 from ..match.coarse import CoarseAlignment, Hypothesis
 from ..match.tiepoints import TiePoints
 from ..pipeline.coarse import _align, georeference_prior, overview, overview_factor
-from ..pipeline.correspond import _tile_task, distorted_window, first_pass, fit_global
+from ..pipeline.correspond import _subset, _tile_task, distorted_window, first_pass, fit_global
 from ..pipeline.detect import interest_points_many
 from ..pipeline.job import Job
 from ..pipeline.register import RegisterOptions, _check_overlap
 from ..runtime import current_client
 from ..scene import WindowReader
-from ..tiles import TileGrid
+from ..tiles import PointsByRow, TileGrid
 
 
 @dataclass(frozen=True)
@@ -107,10 +107,6 @@ def _overview_keys(spec: PairSpec, images: list[xr.DataArray], band: int, dist_b
     return (spec.base, band, factor), (spec.dist, dist_band, factor), factor
 
 
-def _subset(points: InterestPoints, mask: np.ndarray) -> InterestPoints:
-    return InterestPoints(points.x[mask], points.y[mask], points.w[mask], points.q[mask])
-
-
 def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_reader: WindowReader,
                 bpts: InterestPoints, dpts: InterestPoints, predict: PolyMap, opts: RegisterOptions,
                 guided: bool, refine: bool = True) -> dict:
@@ -122,14 +118,16 @@ def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_rea
     token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dband, predict.coef, copts, guided, refine)
     margin = copts.d_max + copts.margin * 2 + 2
     tasks = {}
+    routed = grid.route(bpts.x, bpts.y)
+    dist_rows = PointsByRow(dpts.x, dpts.y)
     for tile in grid:
-        inside = tile.contains(bpts.x, bpts.y)
-        if not inside.any():
+        inside = routed.get(tile.key)
+        if inside is None:
             continue
         dwin = distorted_window(tile, predict, margin).clip(*dshape)
         if dwin.empty:
             continue
-        dsel = (dpts.y >= dwin[0]) & (dpts.y < dwin[1]) & (dpts.x >= dwin[2]) & (dpts.x < dwin[3])
+        dsel = dist_rows.in_window(dwin)
         tasks[f"{pair.spec.name}.{tile.key}-{token[:12]}"] = dask.delayed(_tile_task, pure=True)(
             tile, base_reader, dist_reader, band, dband, _subset(bpts, inside), _subset(dpts, dsel), predict, dwin,
             copts, guided, refine, dask_key_name=f"correspond-{pair.spec.name}-{tile.key}-{token}")

@@ -19,12 +19,12 @@ from ..kernels.polynomial import PolyMap, exponents, fit_polymap
 from ..match.correspondence import CorrespondenceOptions, TileMatchStats, correspond, correspond_guided
 from ..match.tiepoints import TiePoints
 from ..scene import WindowReader
-from ..tiles import Tile, TileGrid, Window
+from ..tiles import PointsByRow, Tile, TileGrid, Window
 from .job import Job, run_tiles
 
 
-def _subset(points: InterestPoints, mask: np.ndarray) -> InterestPoints:
-    return InterestPoints(points.x[mask], points.y[mask], points.w[mask], points.q[mask])
+def _subset(points: InterestPoints, index: np.ndarray) -> InterestPoints:
+    return InterestPoints(points.x[index], points.y[index], points.w[index], points.q[index])
 
 
 def distorted_window(tile: Tile, predict: PolyMap, margin: float) -> Window:
@@ -78,15 +78,17 @@ def match_tiles(
     dshape = dist_reader.shape[1:]
     token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dist_band, predict.coef, opts, guided, refine)
     tasks = {}
+    routed = grid.route(base_points.x, base_points.y)
+    dist_rows = PointsByRow(dist_points.x, dist_points.y)
+    margin = opts.d_max + opts.margin * 2 + 2
     for tile in grid:
-        inside = tile.contains(base_points.x, base_points.y)
-        if not inside.any():
+        inside = routed.get(tile.key)
+        if inside is None:
             continue
-        margin = opts.d_max + opts.margin * 2 + 2
         dwin = distorted_window(tile, predict, margin).clip(*dshape)
         if dwin.empty:
             continue
-        dsel = (dist_points.y >= dwin[0]) & (dist_points.y < dwin[1]) & (dist_points.x >= dwin[2]) & (dist_points.x < dwin[3])
+        dsel = dist_rows.in_window(dwin)
         tasks[tile.key] = dask.delayed(_tile_task, pure=True)(
             tile, base_reader, dist_reader, band, dist_band,
             _subset(base_points, inside), _subset(dist_points, dsel), predict, dwin, opts, guided, refine,

@@ -306,16 +306,9 @@ def seeds_from_tiepoints(tp: TiePoints, mapping: PolyMap) -> np.ndarray:
 
 def _route(seeds: np.ndarray, grid: TileGrid, exclude: str | None = None) -> dict[str, np.ndarray]:
     """Hand seeds to the tiles whose core holds them."""
-    out: dict[str, np.ndarray] = {}
     if seeds.size == 0:
-        return out
-    for tile in grid:
-        if tile.key == exclude:
-            continue
-        m = tile.contains(seeds[:, SEED_COL], seeds[:, SEED_ROW])
-        if m.any():
-            out[tile.key] = seeds[m]
-    return out
+        return {}
+    return {key: seeds[i] for key, i in grid.route(seeds[:, SEED_COL], seeds[:, SEED_ROW]).items() if key != exclude}
 
 
 def _grow_task(tile: Tile, seeds: np.ndarray, shape, base_reader: WindowReader, dist_reader: WindowReader,
