@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import fsspec
 
 if TYPE_CHECKING:
+    import xarray as xr
     import zarr
 
 ROOT_METADATA = "zarr.json"
@@ -51,6 +52,23 @@ def encoding(ds) -> dict:
     ``ds`` :func:`compressors`, on top of its own encoding (which the argument replaces: its
     ``grid_mapping`` would be lost)."""
     return {name: {**ds[name].encoding, "compressors": compressors()} for name in ds.data_vars}
+
+
+def create_store(ds: "xr.Dataset", location: str) -> None:
+    """Create the Zarr store of ``ds`` without its values: every array (with :func:`encoding`),
+    attribute and coordinate, the lazy data variables' chunks left for their writers.
+
+    ``ds.to_zarr(compute=False)`` would also build the Dask graph that stores each lazy variable,
+    merged with the graph that computes it, only to drop it; each is given an empty twin of the
+    same shape, dtype and chunks instead.
+    """
+    import dask.array as da
+
+    twin = ds.copy(deep=False)
+    for name, var in ds.data_vars.items():
+        if isinstance(var.data, da.Array):
+            twin[name] = var.copy(deep=False, data=da.empty(var.shape, dtype=var.dtype, chunks=var.data.chunks))
+    twin.to_zarr(location, mode="w", zarr_format=3, consolidated=False, compute=False, encoding=encoding(ds))
 
 
 def is_url(location: str | os.PathLike) -> bool:

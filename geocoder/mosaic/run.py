@@ -506,8 +506,7 @@ def mosaic(
         ds.attrs.update(store_attrs(summary, block, models, gains))
         store = job.file("output.zarr")
         if not job.done("output-created"):
-            ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False,
-                       encoding=storage.encoding(ds))
+            storage.create_store(ds, store)
             job.save("output-created")
         xr.Dataset({name: ("point", points[:, k]) for k, name in enumerate(POINT_COLUMNS)},
                    attrs={"long_name": "adjusted ground points (geocoder.mosaic.block.point_table)",

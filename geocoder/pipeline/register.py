@@ -531,8 +531,7 @@ def _run(job: Job, bscene, dscene, opts: RegisterOptions, summary: RegisterSumma
         else:
             store = job.file("output.zarr")
             if not job.done("output-created"):
-                ds.to_zarr(store, mode="w", zarr_format=3, consolidated=False, compute=False,
-                          encoding=storage.encoding(ds))
+                storage.create_store(ds, store)
                 job.save("output-created")
             # the store's other metadata (tie points, the overview levels' groups) is written by
             # the client while the workers compute the tiles, not after them with the workers idle
