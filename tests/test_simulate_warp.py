@@ -294,6 +294,22 @@ def test_make_pair_truth_consistency_smooth() -> None:
     np.testing.assert_allclose(pair.base[0], src[32:228, 32:268], rtol=0, atol=1e-4)
 
 
+def test_make_pair_renders_a_given_field() -> None:
+    """``warp=`` renders that field (the truth is its displacement) instead of a random draw."""
+    src = _smooth_source((260, 300))
+    warp = WarpField(affine=[[0.01, 0.0, 0.4], [0.0, -0.02, -0.3]], quadratic=[[2e-4, 0, 0], [0, 0, 1e-4]],
+                     centre=(117.5, 97.5), turbulence_x=[], turbulence_y=[])
+    pair = make_pair(src, shape=(196, 236), seed=12, noise=0.0, gain=(1.0, 1.0), offset=0.0, warp=warp)
+    assert pair.field is warp
+    yy, xx = np.indices((196, 236), dtype=np.float64)
+    dx, dy = warp.displacement(xx, yy)
+    np.testing.assert_array_equal(pair.dx, dx)
+    np.testing.assert_array_equal(pair.dy, dy)
+    qy, qx = np.indices((196, 236), dtype=np.float64)
+    px, py = invert(warp, qx, qy)
+    np.testing.assert_allclose(pair.distorted[0], _smooth_function(px + 32, py + 32), rtol=0, atol=2e-3)
+
+
 def test_make_pair_nodata_and_shape(ortho: np.ndarray) -> None:
     src = ortho[0].astype(np.float64).copy()
     src[150:170, 140:160] = np.nan  # a hole inside the base area

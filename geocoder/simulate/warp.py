@@ -799,6 +799,7 @@ def make_pair(
     order: int = 3,
     affine_max: float | None = None,
     relief: tuple[float, float] | None = None,
+    warp: WarpField | None = None,
 ) -> SyntheticPair:
     """Cut a base image from ``source`` and render a distorted copy with known truth.
 
@@ -834,6 +835,9 @@ def make_pair(
         Offset of the base crop inside ``source``.
     order : int, optional
         Spline order of the resampling (0-5).
+    warp : WarpField, optional
+        The displacement to render instead of a random one (``max_displacement``,
+        ``turbulence``, ``affine_max`` and ``relief`` are then not used).
 
     Returns
     -------
@@ -866,14 +870,16 @@ def make_pair(
         raise ValueError("noise and offset must be >= 0 and gain an interval (low, high)")
     hd, wd = _check_shape(distorted_shape) if distorted_shape is not None else (h, w)
 
-    field = WarpField.random(
-        (h, w),
-        seed=seed,
-        max_displacement=max_displacement,
-        affine_max=affine_max,
-        turbulence=turbulence,
-        relief=relief,
-    )
+    field = warp
+    if field is None:
+        field = WarpField.random(
+            (h, w),
+            seed=seed,
+            max_displacement=max_displacement,
+            affine_max=affine_max,
+            turbulence=turbulence,
+            relief=relief,
+        )
 
     yq, xq = np.indices((hd, wd), dtype=np.float64)
     px, py = invert(field, xq, yq)
