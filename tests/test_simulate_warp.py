@@ -301,12 +301,11 @@ def test_make_pair_renders_a_given_field() -> None:
                      centre=(117.5, 97.5), turbulence_x=[], turbulence_y=[])
     pair = make_pair(src, shape=(196, 236), seed=12, noise=0.0, gain=(1.0, 1.0), offset=0.0, warp=warp)
     assert pair.field is warp
-    yy, xx = np.indices((196, 236), dtype=np.float64)
-    dx, dy = warp.displacement(xx, yy)
+    rows, cols = np.indices((196, 236), dtype=np.float64)
+    dx, dy = warp.displacement(cols, rows)
     np.testing.assert_array_equal(pair.dx, dx)
     np.testing.assert_array_equal(pair.dy, dy)
-    qy, qx = np.indices((196, 236), dtype=np.float64)
-    px, py = invert(warp, qx, qy)
+    px, py = invert(warp, cols, rows)  # the base position of every distorted pixel
     np.testing.assert_allclose(pair.distorted[0], _smooth_function(px + 32, py + 32), rtol=0, atol=2e-3)
 
 

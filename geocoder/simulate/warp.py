@@ -870,16 +870,14 @@ def make_pair(
         raise ValueError("noise and offset must be >= 0 and gain an interval (low, high)")
     hd, wd = _check_shape(distorted_shape) if distorted_shape is not None else (h, w)
 
-    field = warp
-    if field is None:
-        field = WarpField.random(
-            (h, w),
-            seed=seed,
-            max_displacement=max_displacement,
-            affine_max=affine_max,
-            turbulence=turbulence,
-            relief=relief,
-        )
+    field = warp if warp is not None else WarpField.random(
+        (h, w),
+        seed=seed,
+        max_displacement=max_displacement,
+        affine_max=affine_max,
+        turbulence=turbulence,
+        relief=relief,
+    )
 
     yq, xq = np.indices((hd, wd), dtype=np.float64)
     px, py = invert(field, xq, yq)
