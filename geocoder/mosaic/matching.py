@@ -32,13 +32,13 @@ from ..kernels.polynomial import PolyMap
 from ..match.coarse import CoarseAlignment, Hypothesis
 from ..match.tiepoints import TiePoints
 from ..pipeline.coarse import _align, georeference_prior, overview, overview_factor
-from ..pipeline.correspond import _subset, _tile_task, distorted_window, first_pass, fit_global
+from ..pipeline.correspond import _tile_task, first_pass, fit_global, tile_points
 from ..pipeline.detect import interest_points_many
 from ..pipeline.job import Job
 from ..pipeline.register import RegisterOptions, _check_overlap
 from ..runtime import current_client
 from ..scene import WindowReader
-from ..tiles import PointsByRow, TileGrid
+from ..tiles import TileGrid
 
 
 @dataclass(frozen=True)
@@ -116,20 +116,10 @@ def _pair_tasks(pair: _Pair, grid: TileGrid, base_reader: WindowReader, dist_rea
     band, dband = opts.band - 1, (opts.dist_band or opts.band) - 1
     dshape = dist_reader.shape[1:]
     token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dband, predict.coef, copts, guided, refine)
-    margin = copts.d_max + copts.margin * 2 + 2
     tasks = {}
-    routed = grid.route(bpts.x, bpts.y)
-    dist_rows = PointsByRow(dpts.x, dpts.y)
-    for tile in grid:
-        inside = routed.get(tile.key)
-        if inside is None:
-            continue
-        dwin = distorted_window(tile, predict, margin).clip(*dshape)
-        if dwin.empty:
-            continue
-        dsel = dist_rows.in_window(dwin)
+    for tile, tile_bpts, tile_dpts, dwin in tile_points(grid, bpts, dpts, predict, dshape, copts):
         tasks[f"{pair.spec.name}.{tile.key}-{token[:12]}"] = dask.delayed(_tile_task, pure=True)(
-            tile, base_reader, dist_reader, band, dband, _subset(bpts, inside), _subset(dpts, dsel), predict, dwin,
+            tile, base_reader, dist_reader, band, dband, tile_bpts, tile_dpts, predict, dwin,
             copts, guided, refine, dask_key_name=f"correspond-{pair.spec.name}-{tile.key}-{token}")
     return tasks
 

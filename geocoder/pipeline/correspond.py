@@ -9,6 +9,7 @@ is fitted on one node (seed 003 sec. 7).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import dask
@@ -56,6 +57,25 @@ class CorrespondenceResult:
     stats: list[TileMatchStats]
 
 
+def tile_points(grid: TileGrid, base_points: InterestPoints, dist_points: InterestPoints, predict: PolyMap,
+                dshape: tuple[int, int], opts: CorrespondenceOptions
+                ) -> Iterator[tuple[Tile, InterestPoints, InterestPoints, Window]]:
+    """What each tile's correspondence task gets: per tile whose core holds base points and whose
+    predicted window in the distorted scene (``dshape``) is not empty, the tile, its base
+    points, the distorted points in that window and the window (the points routed to tiles in
+    one pass, :meth:`~geocoder.tiles.TileGrid.route` and :class:`~geocoder.tiles.PointsByRow`)."""
+    routed = grid.route(base_points.x, base_points.y)
+    dist_rows = PointsByRow(dist_points.x, dist_points.y)
+    margin = opts.d_max + opts.margin * 2 + 2
+    for tile in grid:
+        inside = routed.get(tile.key)
+        if inside is None:
+            continue
+        dwin = distorted_window(tile, predict, margin).clip(*dshape)
+        if not dwin.empty:
+            yield tile, _subset(base_points, inside), _subset(dist_points, dist_rows.in_window(dwin)), dwin
+
+
 def match_tiles(
     base_reader: WindowReader,
     dist_reader: WindowReader,
@@ -78,20 +98,9 @@ def match_tiles(
     dshape = dist_reader.shape[1:]
     token = dask.base.tokenize(base_reader.store, dist_reader.store, band, dist_band, predict.coef, opts, guided, refine)
     tasks = {}
-    routed = grid.route(base_points.x, base_points.y)
-    dist_rows = PointsByRow(dist_points.x, dist_points.y)
-    margin = opts.d_max + opts.margin * 2 + 2
-    for tile in grid:
-        inside = routed.get(tile.key)
-        if inside is None:
-            continue
-        dwin = distorted_window(tile, predict, margin).clip(*dshape)
-        if dwin.empty:
-            continue
-        dsel = dist_rows.in_window(dwin)
+    for tile, bpts, dpts, dwin in tile_points(grid, base_points, dist_points, predict, dshape, opts):
         tasks[tile.key] = dask.delayed(_tile_task, pure=True)(
-            tile, base_reader, dist_reader, band, dist_band,
-            _subset(base_points, inside), _subset(dist_points, dsel), predict, dwin, opts, guided, refine,
+            tile, base_reader, dist_reader, band, dist_band, bpts, dpts, predict, dwin, opts, guided, refine,
             dask_key_name=f"correspond-{tile.key}-{token}",
         )
     results = list(run_tiles(job, f"{stage}-{token[:12]}", tasks, phase=stage).values())
