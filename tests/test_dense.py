@@ -191,12 +191,13 @@ def test_dense_lattice_field_against_truth(shared_data, tmp_path, client):
 def test_where_the_polynomial_explains_the_field_the_line_fits_take_the_noise_off(shared_data, tmp_path, client):
     """Issue 14: a smooth field (affine + quadratic, no turbulence) is what the global polynomial
     models; the matches shrunk toward their lines' fits are less noisy than the matches
-    alone, and their sigma tells how far off they are. Measured (512^2 S2, 53 % textured): 0.1005 px
-    without the fits, 0.022 with them (calibration 1.10 / 0.92; before the lines' spreads had to
+    alone, and their sigma tells how far off they are. Measured (512^2 S2, 53 % textured): 0.096 px
+    without the fits, 0.0136 with them (calibration 0.96 / 0.77); before the every-pixel pass
+    sampled with Lanczos-3, 0.1005 and 0.022 (1.10 / 0.92; before the lines' spreads had to
     pass a test, 0.025, 1.10 / 0.86); before the rows' departures were
     shrunk toward their trend 0.041 (0.88 / 1.00), before the lines' slopes were 0.062 (1.19 /
-    1.32). The polynomial itself: 0.0086, so the goal of being no noisier than the polynomial is
-    not reached on this case (it is on issue 14's smooth 1024^2 S2 case, 0.006 px both)."""
+    1.32)). The polynomial itself: 0.0086, so the goal of being no noisier than the polynomial is
+    not reached on this case (it is on issue 14's smooth 1024^2 S2 case, 0.003 px against 0.006)."""
     files = real_pair(shared_data, tmp_path, which="s2", size=512, seed=5)
     ds = register(files.base, files.distorted, tile=256, client=client)
     off = register(files.base, files.distorted, tile=256, client=client,
@@ -211,7 +212,9 @@ def test_where_the_polynomial_explains_the_field_the_line_fits_take_the_noise_of
     assert set(np.unique(ds.status.values[differ])) | set(np.unique(off.status.values[differ])) <= {
         Status.MATCHED, Status.ESTIMATED}
     assert f["rmse"] <= 0.3 * f_off["rmse"]  # measured 0.24
-    assert 0.8 <= f["calib_x"] <= 1.25 and 0.8 <= f["calib_y"] <= 1.25
+    # one smooth scene's calibration is a draw: over fifteen (S2 512^2 seeds 1-8, 1024^2 1-3,
+    # aerial 512^2 1-4) 0.43-1.58 per scene, 0.91 / 0.96 pooled; this one 0.96 / 0.77
+    assert 0.67 <= f["calib_x"] <= 1.5 and 0.67 <= f["calib_y"] <= 1.5
     assert f["unflagged_over_1px"] == 0
 
 
@@ -232,7 +235,9 @@ def test_holes_cut_into_well_matched_lines_are_filled_by_length(shared_data, tmp
     for length in (4, 8, 16, 24, 32, 64, 128):
         way, other = ("filled", "estimated") if length <= 24 else ("estimated", "filled")
         r = by[length, way]
-        assert r["pixels"] >= 40 * length and by[length, other]["pixels"] == 0  # measured 45 lines
+        # measured 16 lines (45 when the every-pixel pass sampled bilinearly: it accepted the matches
+        # of 29 more lines at 0.09 px sigma whose y error was 0.12 px)
+        assert r["pixels"] >= 12 * length and by[length, other]["pixels"] == 0
         # measured: filled 0.048-0.051 px, estimated 0.053-0.055 px; the removed raw matches
         # themselves are ~0.1 px off the values (their own noise, which the fills average away)
         assert r["rmse"] <= 0.07 and r["over_1px"] == 0

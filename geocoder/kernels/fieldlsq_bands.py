@@ -57,6 +57,7 @@ from .fieldlsq import (
     smoothed_positions,
 )
 from .window_sums import (
+    _LANCZOS,
     _NPLANES_SOLVE,
     _NSUMS,
     _P0,
@@ -78,7 +79,7 @@ from .window_sums import (
     _centred_sums,
     _ldl_solve8,
     _row_planes,
-    _sample,
+    _sample_lanczos,
 )
 
 __all__ = ["field_lsq_bands"]
@@ -284,7 +285,7 @@ def field_lsq_bands(
         reg, warp = round_windows(region, grow, rx, ry, (h, w))
         smoothed_positions(px, py, weight, rx, ry, work, sx, sy)
         for b in range(nb):
-            _sample(d[b], sx, sy, warp, iw[b])
+            _sample_lanczos(d[b], sx, sy, warp, _LANCZOS, iw[b])
         _solve_window_bands(t, iw, tgx, tgy, sx, sy, weight, reg, rx, ry, min_fill, it == iterations - 1, sol, stats)
         _move(sol, stats, sx, sy, px, py, step, reg)
     stats[_SIGMA_X : _SIGMA_Y + 1] *= _noise_gain(rx, ry)
