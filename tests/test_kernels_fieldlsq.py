@@ -21,11 +21,11 @@ REGION = (40, SIZE - 40, 90, SIZE - 90)
 OPTS = AlscOptions(radius=25, radius_y=3, max_shift=0.5, max_sigma=0.1, tol=2e-4, max_iter=30)
 
 
-@pytest.fixture(scope="module")
-def case(shared_data):
+def _warped(path, origin: tuple[int, int]):
     """A real crop warped by affine + quadratic + scan-line turbulence, and a start near the truth."""
     margin = 32
-    src = read_band(shared_data / S2, 1, (300, 300 + SIZE + 2 * margin, 1100, 1100 + SIZE + 2 * margin))
+    r0, c0 = origin
+    src = read_band(path, 1, (r0, r0 + SIZE + 2 * margin, c0, c0 + SIZE + 2 * margin))
     pair = make_pair(src, shape=(SIZE, SIZE), seed=21, margin=margin, turbulence=(1.0, 3.0))
     ys, xs = np.mgrid[0:SIZE, 0:SIZE]
     tx, ty = xs + pair.dx, ys + pair.dy
@@ -34,6 +34,11 @@ def case(shared_data):
     x0 = tx + 0.05 * np.sin(xs / 40.0) + 0.02 * rng.standard_normal((SIZE, 1))
     y0 = ty + 0.04 * np.cos(ys / 9.0 + xs / 70.0) + 0.02 * rng.standard_normal((SIZE, 1))
     return pair, tx, ty, x0, y0
+
+
+@pytest.fixture(scope="module")
+def case(shared_data):
+    return _warped(shared_data / S2, (300, 1100))
 
 
 def _errors(res, tx, ty, region=REGION):
@@ -76,14 +81,7 @@ def test_sharp_texture_is_matched_as_precisely_as_its_noise_allows(shared_data):
     """A Landsat crop (300 m pixels: texture at the pixel scale): the template's pass samples
     the image with Lanczos-3, so the texture a bilinear sample smooths away is not left in the
     residuals (bilinear: RMSE y 0.051 px on this pair, 83 % accepted; Lanczos-3: 0.039 px, 87 %)."""
-    margin = 32
-    src = read_band(shared_data / LANDSAT, 1, (20, 20 + SIZE + 2 * margin, 60, 60 + SIZE + 2 * margin))
-    pair = make_pair(src, shape=(SIZE, SIZE), seed=21, margin=margin, turbulence=(1.0, 3.0))
-    ys, xs = np.mgrid[0:SIZE, 0:SIZE]
-    tx, ty = xs + pair.dx, ys + pair.dy
-    rng = np.random.default_rng(0)
-    x0 = tx + 0.05 * np.sin(xs / 40.0) + 0.02 * rng.standard_normal((SIZE, 1))
-    y0 = ty + 0.04 * np.cos(ys / 9.0 + xs / 70.0) + 0.02 * rng.standard_normal((SIZE, 1))
+    pair, tx, ty, x0, y0 = _warped(shared_data / LANDSAT, (20, 60))
     res = field_lsq(pair.base[0], pair.distorted[0], x0, y0, np.ones((SIZE, SIZE), bool), REGION)
     ex, ey = _errors(res, tx, ty)
     ok = res.code == 0
