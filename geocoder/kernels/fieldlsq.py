@@ -371,9 +371,9 @@ def field_lsq(
         image's slopes on smooth texture); each round samples the image (Lanczos-3) on the
         field smoothed over the template's box and moves a pixel to that mean plus its
         template's shift, so a round reaches two half-sizes, and sigma carries the fixed
-        point's noise gain (:func:`_noise_gain`). ``"image"``: the slopes of the distorted image's
-        interpolant at every template pixel's own position, each template linearised about
-        its centre (one half-size per round).
+        point's noise gain (:func:`_noise_gain`). ``"image"``: the slopes of the distorted
+        image's bilinear interpolant at every template pixel's own position, each template
+        linearised about its centre (one half-size per round).
 
     Returns
     -------
