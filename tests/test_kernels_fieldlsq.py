@@ -11,6 +11,7 @@ from conftest import read_band
 from geocoder.kernels import fieldlsq, window_sums
 from geocoder.kernels.alsc import AlscOptions, alsc
 from geocoder.kernels.fieldlsq import field_lsq, template_solution_reference
+from geocoder.kernels.resample import LANCZOS_TABLE
 from geocoder.match.densify import lattice_start, rows_between
 from geocoder.simulate.warp import make_pair
 
@@ -93,7 +94,7 @@ def test_sharp_texture_is_matched_as_precisely_as_its_noise_allows(shared_data):
 
 
 def test_lanczos_samples_against_the_kernel_and_the_nodata_rules():
-    """The table of weights (linear between 1,024 fractions) against Lanczos-3 itself; pixel
+    """The table of weights (linear between 4,096 fractions) against Lanczos-3 itself; pixel
     values exactly at integer positions; NaN where a tap is outside the image or NaN."""
     rng = np.random.default_rng(5)
     img = rng.normal(100.0, 30.0, size=(40, 50))
@@ -103,7 +104,7 @@ def test_lanczos_samples_against_the_kernel_and_the_nodata_rules():
     y = rng.uniform(-1.0, h, (60, 60))
     x[:5], y[:5] = np.round(x[:5]), np.round(y[:5])  # integer positions
     out = np.full(x.shape, -1.0)
-    window_sums._sample_lanczos(img, x, y, np.array([0, 60, 0, 60]), window_sums._LANCZOS, out)
+    window_sums._sample_lanczos(img, x, y, np.array([0, 60, 0, 60]), LANCZOS_TABLE, out)
     ix, iy = np.floor(x).astype(int), np.floor(y).astype(int)
     inside = (x >= 2) & (x < w - 3) & (y >= 2) & (y < h - 3)
     assert np.isnan(out[~inside]).all()
@@ -120,8 +121,8 @@ def test_lanczos_samples_against_the_kernel_and_the_nodata_rules():
     np.testing.assert_array_equal(np.isnan(out[r, c]), np.isnan(ref))
     good = np.isfinite(ref)
     assert good.sum() > 1500 and (~good).sum() > 10  # the NaN pixel's taps are NaN
-    # weights within 4.2e-7 of the kernel: a sample within a few 1e-6 of the taps' spread
-    np.testing.assert_allclose(out[r, c][good], ref[good], atol=1e-5 * 30.0)
+    # weights within 2.6e-8 of the kernel: a sample within 1e-6 of the taps' spread
+    np.testing.assert_allclose(out[r, c][good], ref[good], atol=1e-6 * 30.0)
     at_pixel = inside[:5] & np.isfinite(out[:5])
     np.testing.assert_allclose(out[:5][at_pixel], img[iy[:5][at_pixel], ix[:5][at_pixel]], rtol=1e-12)
 

@@ -68,8 +68,8 @@ import numba
 import numpy as np
 
 from .alsc import Exit
+from .resample import LANCZOS_TABLE
 from .window_sums import (
-    _LANCZOS,
     _NPLANES,
     _NPLANES_SOLVE,
     _NSUMS,
@@ -517,7 +517,7 @@ def _template_rounds(t, d, px, py, weight, region, rx, ry, iterations, min_fill,
         grow = 2 * (iterations - 1 - it)
         reg, warp = round_windows(region, grow, rx, ry, (h, w))
         smoothed_positions(px, py, weight, rx, ry, work, sx, sy)
-        _sample_lanczos(d, sx, sy, warp, _LANCZOS, iw)
+        _sample_lanczos(d, sx, sy, warp, LANCZOS_TABLE, iw)
         _solve_window(t, iw, tgx, tgy, iw, iw, sx, sy, 0.0, 0.0, weight, reg, rx, ry, min_fill, it == iterations - 1,
                       True, sol, stats)
         _move(sol, stats, sx, sy, px, py, step, reg)

@@ -56,8 +56,8 @@ from .fieldlsq import (
     round_windows,
     smoothed_positions,
 )
+from .resample import LANCZOS_TABLE
 from .window_sums import (
-    _LANCZOS,
     _NPLANES_SOLVE,
     _NSUMS,
     _P0,
@@ -285,7 +285,7 @@ def field_lsq_bands(
         reg, warp = round_windows(region, grow, rx, ry, (h, w))
         smoothed_positions(px, py, weight, rx, ry, work, sx, sy)
         for b in range(nb):
-            _sample_lanczos(d[b], sx, sy, warp, _LANCZOS, iw[b])
+            _sample_lanczos(d[b], sx, sy, warp, LANCZOS_TABLE, iw[b])
         _solve_window_bands(t, iw, tgx, tgy, sx, sy, weight, reg, rx, ry, min_fill, it == iterations - 1, sol, stats)
         _move(sol, stats, sx, sy, px, py, step, reg)
     stats[_SIGMA_X : _SIGMA_Y + 1] *= _noise_gain(rx, ry)

@@ -21,7 +21,8 @@ Methods and their taps (``x0 = floor(x)``, ``f = x - x0``, same along y):
     ``a = -0.5``.
 ``lanczos``
     6 taps ``x0 - 2 .. x0 + 3``, Lanczos kernel with ``a = 3``, weights
-    normalised to sum to one along each axis.
+    normalised to sum to one along each axis (from :data:`LANCZOS_TABLE`,
+    linear between its 4,096 fractions of a pixel: within 2.6e-8).
 
 The numba kernels (:func:`sample`) loop over the sample points; the tap
 weights of a point are computed once and reused for every band.
@@ -36,7 +37,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["METHODS", "sample", "sample_reference", "window_for"]
+__all__ = ["LANCZOS_TABLE", "METHODS", "lanczos_weights", "sample", "sample_reference", "window_for"]
 
 METHODS = ("nearest", "bilinear", "cubic", "lanczos")
 
@@ -265,30 +266,44 @@ def _sample_cubic(image, x, y, out):  # pragma: no cover - compiled
         _accumulate(image, out, p, int(y0) - 1, int(x0) - 1, wy, wx)
 
 
-@numba.njit(nogil=True, cache=True)
-def _lanczos_weights(f, w):  # pragma: no cover - compiled
-    """Normalised Lanczos-3 weights of the taps ``-2 .. 3`` relative to ``floor``."""
-    if f == 0.0:
+def _lanczos_table(steps: int) -> np.ndarray:
+    """Normalised Lanczos-3 weights of the taps ``floor(x) - 2 .. floor(x) + 3`` at the
+    fractions ``f = i / steps``, shape ``(steps + 1, 6)``."""
+    d = np.arange(steps + 1)[:, None] / steps - np.arange(-2, 4)[None, :]
+    w = np.sinc(d) * np.sinc(d / _LANCZOS_A)
+    return w / w.sum(axis=1, keepdims=True)
+
+
+#: Lanczos-3 weights at 4,096 fractions of a pixel (rows), for :func:`lanczos_weights`.
+LANCZOS_TABLE = _lanczos_table(4096)
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def lanczos_weights(f, table, w):  # pragma: no cover - compiled
+    """The six Lanczos-3 weights at the fraction ``f`` in [0, 1), linear between the rows of
+    ``table`` (:data:`LANCZOS_TABLE`: within 2.6e-8 of the kernel). :func:`sample` took
+    360-450 ms for a 1024 tile's 1.17 M positions with the kernel's sines per point, 157-167 ms
+    with the table; the every-pixel pass's own loop 29-36 ms."""
+    n = table.shape[0] - 1
+    t = f * n
+    i = min(int(t), n - 1)
+    a = t - i
+    for k in range(6):
+        w[k] = table[i, k] + a * (table[i + 1, k] - table[i, k])
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _lanczos_at(f, table, w):  # pragma: no cover - compiled
+    if f == 0.0:  # exactly on a pixel: one tap, the others never read
         for k in range(6):
             w[k] = 0.0
         w[2] = 1.0
-        return
-    total = 0.0
-    for k in range(6):
-        d = f - (k - 2)
-        if abs(d) >= 3.0:
-            v = 0.0
-        else:
-            t = math.pi * d
-            v = 3.0 * math.sin(t) * math.sin(t / 3.0) / (t * t)
-        w[k] = v
-        total += v
-    for k in range(6):
-        w[k] /= total
+    else:
+        lanczos_weights(f, table, w)
 
 
 @numba.njit(nogil=True, cache=True)
-def _sample_lanczos(image, x, y, out):  # pragma: no cover - compiled
+def _sample_lanczos(image, x, y, table, out):  # pragma: no cover - compiled
     _, height, width = image.shape
     wx = np.empty(6)
     wy = np.empty(6)
@@ -300,8 +315,8 @@ def _sample_lanczos(image, x, y, out):  # pragma: no cover - compiled
             continue
         x0 = math.floor(xp)
         y0 = math.floor(yp)
-        _lanczos_weights(xp - x0, wx)
-        _lanczos_weights(yp - y0, wy)
+        _lanczos_at(xp - x0, table, wx)
+        _lanczos_at(yp - y0, table, wy)
         _accumulate(image, out, p, int(y0) - 2, int(x0) - 2, wy, wx)
 
 
@@ -309,7 +324,6 @@ _KERNELS = {
     "nearest": _sample_nearest,
     "bilinear": _sample_bilinear,
     "cubic": _sample_cubic,
-    "lanczos": _sample_lanczos,
 }
 
 
@@ -395,7 +409,11 @@ def sample(
     image3, xf, yf, is_2d, pshape = _prepare(image, x, y)
     image3 = np.ascontiguousarray(image3)
     out = np.empty((image3.shape[0], xf.shape[0]), dtype=np.float32)
-    _KERNELS[method](image3, np.ascontiguousarray(xf), np.ascontiguousarray(yf), out)
+    xf, yf = np.ascontiguousarray(xf), np.ascontiguousarray(yf)
+    if method == "lanczos":
+        _sample_lanczos(image3, xf, yf, LANCZOS_TABLE, out)
+    else:
+        _KERNELS[method](image3, xf, yf, out)
     out = out.reshape((image3.shape[0],) + pshape)
     return out[0] if is_2d else out
 
