@@ -235,14 +235,18 @@ def test_holes_cut_into_well_matched_lines_are_filled_by_length(shared_data, tmp
     for length in (4, 8, 16, 24, 32, 64, 128):
         way, other = ("filled", "estimated") if length <= 24 else ("estimated", "filled")
         r = by[length, way]
-        # measured 16 lines (45 when the every-pixel pass sampled bilinearly: it accepted the matches
+        # measured 15 lines (45 when the every-pixel pass sampled bilinearly: it accepted the matches
         # of 29 more lines at 0.09 px sigma whose y error was 0.12 px)
         assert r["pixels"] >= 12 * length and by[length, other]["pixels"] == 0
         # measured: filled 0.048-0.051 px, estimated 0.053-0.055 px; the removed raw matches
         # themselves are ~0.1 px off the values (their own noise, which the fills average away)
         assert r["rmse"] <= 0.07 and r["over_1px"] == 0
-        # measured: filled 0.81-0.91 (x), 0.84-0.90 (y); estimated 0.97-1.04, 1.20-1.29
-        assert all(0.7 <= c <= 1.5 for c in r["calibration"])
+        # measured: filled 1.07-1.20 (x), 1.33-1.58 (y); estimated 0.92-1.05, 1.28-1.47. The 15 lines
+        # are four runs of neighbouring lines, so a length's calibration is a draw: over the holes'
+        # seeds 0-5, y 1.12-1.68 (and 1.08-1.70 with the lattice converged to 0.005 px, which drew
+        # 1.24-1.45 here); x 0.76-1.34 (in the 40 lines of the bilinear sample: 0.81-0.91 / 0.84-0.90)
+        cx, cy = r["calibration"]
+        assert 0.7 <= cx <= 1.5 and 0.7 <= cy <= 1.75
     with pytest.raises(ValueError, match="without the line step"):  # a field with estimates has been through it
         hole_check(ds.assign(status=xr.full_like(ds.status, Status.ESTIMATED)), files.pair.dx, files.pair.dy,
                    str(tmp_path / "again"))

@@ -92,7 +92,7 @@ class DenseOptions:
         ``row_step``-th); the lines between start the every-pixel pass from the lattice lines on
         either side (:func:`geocoder.match.densify.rows_between`). Only with ``col_step > 1`` and
         ``densify="field"`` (:attr:`lattice_rows`); full growth and ``"step"`` match every line.
-        Default 2 with ``lattice_tol`` 0.005: against every line at 0.01 (2048^2 bench pair, 2
+        Default 2 (measured with ``lattice_tol`` 0.005): against every line at 0.01 (2048^2 bench pair, 2
         workers, three interleaved pairs of runs) the region growing's task time 8.2 -> 5.7 s,
         the job 13.4 -> 12.0 s; on the nine simulated cases of ``bench_dense_cases.py`` the same matched RMSE
         (+-0.001 px) and coverage of the textured overlap the same or up to 0.6 points higher;
@@ -110,10 +110,16 @@ class DenseOptions:
     lattice_tol : convergence threshold (px) of the lattice's matches when ``col_step > 1``
         (instead of ``alsc.tol``): they only start and seed the every-pixel pass, which matches
         every pixel again and decides the output. 0.01 px against 2e-4 halved the growth's CPU
-        time at the same result on the tests' crops (issue 12's notes). With ``row_step`` 2,
-        0.005: a lattice line's small path dependence (which neighbour predicted a run of its
-        matches, so which side they converged from) then reaches the line between as well,
-        0.0146 px between the tilings of ``tests/test_dense.py`` at 0.01, 0.0026 at 0.005.
+        time at the same result on the tests' crops (issue 12's notes). A lattice line's small
+        path dependence (which neighbour predicted a run of its matches, so which side they
+        converged from) reaches the every-pixel pass through its starts, which its rounds take
+        back all but a share of (a fifth in y). Between the tilings of ``tests/test_dense.py``,
+        matched pixels: 0.0003 px at 0.005, 0.0028 at 0.01, 0.0092 at 0.05 (estimated pixels:
+        0.0026, 0.015, 0.049; with the bilinear sample of the every-pixel pass before the
+        Lanczos-3 one, 0.0146 px at 0.01). 0.01 against 0.005: the region growing 21 % less
+        CPU time (three captured 1024 tiles of the 2048^2 bench pair, 4.43 -> 3.50 s), the
+        nine cases of ``bench_dense_cases.py`` the same coverage (+-0.1 point) and matched RMSE
+        (the same or 0.001 px lower).
     densify_iterations : resampling rounds of ``"field"``.
     densify_gradients : the design of ``"field"`` (see :func:`geocoder.kernels.fieldlsq.field_lsq`):
         ``"template"`` (default; the base template's gradients, samples on the field smoothed
@@ -148,7 +154,7 @@ class DenseOptions:
     row_step: int = 2
     fill_step_tol: float = 0.05
     densify: str = "field"
-    lattice_tol: float = 0.005
+    lattice_tol: float = 0.01
     densify_iterations: int = 2
     densify_gradients: str = "template"
     densify_tol: float = 0.1
