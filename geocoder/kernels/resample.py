@@ -320,10 +320,15 @@ def _sample_lanczos(image, x, y, table, out):  # pragma: no cover - compiled
         _accumulate(image, out, p, int(y0) - 2, int(x0) - 2, wy, wx)
 
 
+def _sample_lanczos_table(image, x, y, out):
+    _sample_lanczos(image, x, y, LANCZOS_TABLE, out)
+
+
 _KERNELS = {
     "nearest": _sample_nearest,
     "bilinear": _sample_bilinear,
     "cubic": _sample_cubic,
+    "lanczos": _sample_lanczos_table,
 }
 
 
@@ -409,11 +414,7 @@ def sample(
     image3, xf, yf, is_2d, pshape = _prepare(image, x, y)
     image3 = np.ascontiguousarray(image3)
     out = np.empty((image3.shape[0], xf.shape[0]), dtype=np.float32)
-    xf, yf = np.ascontiguousarray(xf), np.ascontiguousarray(yf)
-    if method == "lanczos":
-        _sample_lanczos(image3, xf, yf, LANCZOS_TABLE, out)
-    else:
-        _KERNELS[method](image3, xf, yf, out)
+    _KERNELS[method](image3, np.ascontiguousarray(xf), np.ascontiguousarray(yf), out)
     out = out.reshape((image3.shape[0],) + pshape)
     return out[0] if is_2d else out
 
